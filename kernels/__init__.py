@@ -1,0 +1,57 @@
+"""mcgs_warp.kernels: Warp kernels and functions for Gaussian splatting and SLAM.
+
+A library in its own right: it depends on ``warp`` and ``numpy`` only, so other
+Warp projects can import camera models, SE(3) helpers and the differentiable
+splatting pipeline without the SLAM system.
+
+Modules:
+    camera      camera models (pinhole+radtan, fisheye, equirectangular) as wp.func
+    se3         SE(3)/SO(3) Exp, Log, compose, inverse, adjoint as wp.func
+    projection  EWA projection of Gaussians and its adjoint (incl. camera pose)
+    tiles       tile binning with radix-sorted (tile, depth) keys
+    blend       front-to-back alpha blending and its adjoint
+    splat       Python entry points: project, bin_tiles, blend, render, render_backward
+    reference   NumPy float64 brute-force twin used by the tests
+"""
+
+from .camera import EQUIRECTANGULAR, FISHEYE, MODEL_IDS, PINHOLE, Camera, make_camera
+from .se3 import mat66, vec6
+from .splat import (
+    FAR,
+    NEAR,
+    Gaussians,
+    Gradients,
+    Projection,
+    Rendered,
+    TileBins,
+    Views,
+    bin_tiles,
+    blend,
+    project,
+    render,
+    render_backward,
+)
+
+__all__ = [
+    "Camera",
+    "EQUIRECTANGULAR",
+    "FAR",
+    "FISHEYE",
+    "Gaussians",
+    "Gradients",
+    "MODEL_IDS",
+    "NEAR",
+    "PINHOLE",
+    "Projection",
+    "Rendered",
+    "TileBins",
+    "Views",
+    "bin_tiles",
+    "blend",
+    "make_camera",
+    "mat66",
+    "project",
+    "render",
+    "render_backward",
+    "vec6",
+]

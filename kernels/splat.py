@@ -1,0 +1,326 @@
+"""Python entry points of the splatting pipeline: one function per stage, plus
+:func:`render` / :func:`render_backward` on top.
+
+``project -> bin_tiles -> blend`` and, backwards, ``blend_backward ->
+project_backward``. Every stage takes a batch of C views (a rig, or several
+keyframes) so one launch serves all cameras; images of different sizes are
+padded to the largest and the padding is left at zero.
+
+Shapes: N Gaussians, C views, H x W the largest image. Arrays are Warp arrays on
+the views' device; ``*.numpy()`` gives NumPy views of them on the CPU.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .blend import blend_backward_kernel, blend_kernel
+from .camera import Camera
+from .projection import project_gaussians_backward_kernel, project_gaussians_kernel
+from .se3 import vec6
+from .tiles import TILE_SIZE, count_tiles_kernel, tile_ranges_kernel, write_tile_keys_kernel
+
+NEAR = 0.01  # m, DESIGN.md
+FAR = 100.0  # m
+
+
+@dataclass
+class Gaussians:
+    """Structure-of-arrays Gaussian parameters (what the optimizer updates)."""
+
+    means: wp.array  # [N] vec3, world, m
+    quats: wp.array  # [N] vec4 (x, y, z, w), normalized when used
+    log_scales: wp.array  # [N] vec3, log(m)
+    opacity_logits: wp.array  # [N] float, opacity = sigmoid(logit)
+    colors: wp.array  # [N] vec3, RGB in [0, 1]
+
+    @classmethod
+    def from_numpy(cls, means, quats, log_scales, opacity_logits, colors, device=None) -> "Gaussians":
+        """Copy NumPy arrays ([N,3], [N,4] xyzw, [N,3], [N], [N,3]) to ``device``."""
+        n = len(means)
+        shapes = {"means": (means, 3), "quats": (quats, 4), "log_scales": (log_scales, 3), "colors": (colors, 3)}
+        for name, (arr, k) in shapes.items():
+            if np.shape(arr) != (n, k):
+                raise ValueError(f"Gaussians.{name}: expected shape ({n}, {k}), got {np.shape(arr)}")
+        if np.shape(opacity_logits) != (n,):
+            raise ValueError(f"Gaussians.opacity_logits: expected shape ({n},), got {np.shape(opacity_logits)}")
+
+        def arr(a, dtype):
+            return wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=dtype, device=device)
+
+        return cls(
+            arr(means, wp.vec3),
+            arr(quats, wp.vec4),
+            arr(log_scales, wp.vec3),
+            arr(opacity_logits, float),
+            arr(colors, wp.vec3),
+        )
+
+    @property
+    def n(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def device(self):
+        return self.means.device
+
+
+@dataclass
+class Views:
+    """A batch of C camera views: intrinsics and world->camera matrices."""
+
+    cameras: wp.array  # [C] Camera
+    viewmats: wp.array  # [C] mat44, T_c_w
+    width: int  # largest image width, px
+    height: int  # largest image height, px
+
+    @classmethod
+    def create(cls, cameras: list, T_w_c, device=None) -> "Views":
+        """``cameras``: list of :class:`Camera`; ``T_w_c`` [C,4,4]: camera -> world poses (m)."""
+        T_w_c = np.asarray(T_w_c, dtype=np.float64).reshape(-1, 4, 4)
+        if len(cameras) != len(T_w_c) or len(cameras) == 0:
+            raise ValueError(f"Views: expected one pose per camera, got {len(cameras)} cameras, {len(T_w_c)} poses")
+        T_c_w = np.linalg.inv(T_w_c).astype(np.float32)
+        return cls(
+            wp.array(cameras, dtype=Camera, device=device),
+            wp.array(T_c_w, dtype=wp.mat44, device=device),
+            max(c.width for c in cameras),
+            max(c.height for c in cameras),
+        )
+
+    @property
+    def n(self) -> int:
+        return self.cameras.shape[0]
+
+    @property
+    def device(self):
+        return self.cameras.device
+
+    @property
+    def tiles_x(self) -> int:
+        return (self.width + TILE_SIZE - 1) // TILE_SIZE
+
+    @property
+    def tiles_y(self) -> int:
+        return (self.height + TILE_SIZE - 1) // TILE_SIZE
+
+
+@dataclass
+class Projection:
+    """Per (view, Gaussian) splats, index ``c * N + i``."""
+
+    mean2d: wp.array  # [C*N] vec2, px
+    conic: wp.array  # [C*N] vec3, inverse 2D covariance (a, b, c), 1/px^2
+    depth: wp.array  # [C*N] float, m
+    opacity: wp.array  # [C*N] float
+    visible: wp.array  # [C*N] int32, 0 where culled
+    n_gaussians: int
+
+
+@dataclass
+class TileBins:
+    """Depth-sorted splat lists per tile; ``values[tile_start[t]:tile_end[t]]``."""
+
+    keys: wp.array  # [2*count] int64, tile << 32 | depth bits (first count sorted)
+    values: wp.array  # [2*count] int32, flat splat index
+    count: int  # number of (splat, tile) overlaps
+    tile_start: wp.array  # [C*tiles] int32
+    tile_end: wp.array  # [C*tiles] int32
+
+
+@dataclass
+class Rendered:
+    """Blended images [C,H,W] and what the backward pass needs."""
+
+    color: wp.array  # [C,H,W] vec3, RGB without background
+    depth: wp.array  # [C,H,W] float, m, normalized by alpha (0 where empty)
+    alpha: wp.array  # [C,H,W] float, coverage 1 - T
+    transmittance: wp.array  # [C,H,W] float, final T
+    n_contrib: wp.array  # [C,H,W] int32, list entries walked up to the last contributor
+    projection: Projection
+    bins: TileBins
+
+
+@dataclass
+class Gradients:
+    """Gradients of a scalar loss. ``pose[c]`` is dL/dxi for ``T_w_c <- T_w_c @ Exp(xi)``,
+    ``xi = (rho, phi)`` in the camera frame; ``mean2d`` (per splat) serves densification."""
+
+    means: wp.array  # [N] vec3
+    quats: wp.array  # [N] vec4
+    log_scales: wp.array  # [N] vec3
+    opacity_logits: wp.array  # [N] float
+    colors: wp.array  # [N] vec3
+    pose: wp.array  # [C] vec6
+    mean2d: wp.array  # [C*N] vec2
+
+
+def project(gaussians: Gaussians, views: Views, near: float = NEAR, far: float = FAR) -> Projection:
+    """EWA-project every Gaussian into every view (culling outside near/far and the camera's domain)."""
+    n, dev = gaussians.n, views.device
+    total = views.n * n
+    out = Projection(
+        wp.zeros(total, dtype=wp.vec2, device=dev),
+        wp.zeros(total, dtype=wp.vec3, device=dev),
+        wp.zeros(total, dtype=float, device=dev),
+        wp.zeros(total, dtype=float, device=dev),
+        wp.zeros(total, dtype=wp.int32, device=dev),
+        n,
+    )
+    if total:
+        wp.launch(
+            project_gaussians_kernel,
+            dim=total,
+            inputs=[
+                gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
+                views.cameras, views.viewmats, n, near, far,
+            ],
+            outputs=[out.mean2d, out.conic, out.depth, out.opacity, out.visible],
+            device=dev,
+        )  # fmt: skip
+    return out
+
+
+def bin_tiles(proj: Projection, views: Views) -> TileBins:
+    """Key every (splat, overlapped tile) pair by (tile, depth), radix-sort, and find
+    each tile's range in the sorted list."""
+    dev = views.device
+    total = proj.mean2d.shape[0]
+    tiles_per_camera = views.tiles_x * views.tiles_y
+    n_tiles = views.n * tiles_per_camera
+    tile_start = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
+    tile_end = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
+    empty = TileBins(wp.zeros(0, dtype=wp.int64, device=dev), wp.zeros(0, dtype=wp.int32, device=dev), 0, tile_start, tile_end)
+    if total == 0:
+        return empty
+    counts = wp.empty(total, dtype=wp.int32, device=dev)
+    wp.launch(
+        count_tiles_kernel,
+        dim=total,
+        inputs=[proj.mean2d, proj.conic, proj.opacity, proj.visible, views.cameras, proj.n_gaussians],
+        outputs=[counts],
+        device=dev,
+    )
+    offsets = wp.empty(total, dtype=wp.int32, device=dev)
+    wp.utils.array_scan(counts, offsets, inclusive=True)
+    count = int(offsets[total - 1 : total].numpy()[0])
+    if count == 0:
+        return empty
+    keys = wp.empty(2 * count, dtype=wp.int64, device=dev)
+    values = wp.empty(2 * count, dtype=wp.int32, device=dev)
+    wp.launch(
+        write_tile_keys_kernel,
+        dim=total,
+        inputs=[
+            proj.mean2d, proj.conic, proj.opacity, proj.depth, proj.visible, views.cameras,
+            proj.n_gaussians, views.tiles_x, tiles_per_camera, offsets,
+        ],
+        outputs=[keys, values],
+        device=dev,
+    )  # fmt: skip
+    wp.utils.radix_sort_pairs(keys, values, count, 0, 32 + max(1, int(n_tiles - 1).bit_length()))
+    wp.launch(tile_ranges_kernel, dim=count, inputs=[keys, count], outputs=[tile_start, tile_end], device=dev)
+    return TileBins(keys, values, count, tile_start, tile_end)
+
+
+def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> Rendered:
+    """Front-to-back alpha blending of every view's pixels."""
+    dev = views.device
+    shape = (views.n, views.height, views.width)
+    out = Rendered(
+        wp.empty(shape, dtype=wp.vec3, device=dev),
+        wp.empty(shape, dtype=float, device=dev),
+        wp.empty(shape, dtype=float, device=dev),
+        wp.empty(shape, dtype=float, device=dev),
+        wp.empty(shape, dtype=wp.int32, device=dev),
+        proj,
+        bins,
+    )
+    wp.launch(
+        blend_kernel,
+        dim=shape,
+        inputs=[
+            proj.mean2d, proj.conic, proj.opacity, proj.depth, colors, bins.values,
+            bins.tile_start, bins.tile_end, views.cameras, proj.n_gaussians,
+            views.tiles_x, views.tiles_x * views.tiles_y,
+        ],
+        outputs=[out.color, out.depth, out.alpha, out.transmittance, out.n_contrib],
+        device=dev,
+    )  # fmt: skip
+    return out
+
+
+def render(gaussians: Gaussians, views: Views, near: float = NEAR, far: float = FAR) -> Rendered:
+    """Render colour, depth and alpha of every view: ``project -> bin_tiles -> blend``."""
+    proj = project(gaussians, views, near, far)
+    return blend(proj, bin_tiles(proj, views), gaussians.colors, views)
+
+
+def _image_grad(grad, shape, dtype, dev):
+    if grad is None:
+        return wp.zeros(shape, dtype=dtype, device=dev)
+    if isinstance(grad, wp.array):
+        return grad
+    return wp.array(np.ascontiguousarray(grad, dtype=np.float32), dtype=dtype, device=dev)
+
+
+def render_backward(
+    gaussians: Gaussians,
+    views: Views,
+    rendered: Rendered,
+    grad_color=None,
+    grad_depth=None,
+    grad_alpha=None,
+) -> Gradients:
+    """Gradients of a loss given its gradients w.r.t. the rendered images
+    (``grad_color`` [C,H,W,3], ``grad_depth`` [C,H,W], ``grad_alpha`` [C,H,W];
+    NumPy or Warp arrays, ``None`` for zero)."""
+    dev = views.device
+    shape = (views.n, views.height, views.width)
+    gC = _image_grad(grad_color, shape, wp.vec3, dev)
+    gD = _image_grad(grad_depth, shape, float, dev)
+    gA = _image_grad(grad_alpha, shape, float, dev)
+    proj, bins = rendered.projection, rendered.bins
+    n, total = gaussians.n, proj.mean2d.shape[0]
+    g_mean2d = wp.zeros(total, dtype=wp.vec2, device=dev)
+    g_conic = wp.zeros(total, dtype=wp.vec3, device=dev)
+    g_opacity = wp.zeros(total, dtype=float, device=dev)
+    g_depth = wp.zeros(total, dtype=float, device=dev)
+    grads = Gradients(
+        wp.zeros(n, dtype=wp.vec3, device=dev),
+        wp.zeros(n, dtype=wp.vec4, device=dev),
+        wp.zeros(n, dtype=wp.vec3, device=dev),
+        wp.zeros(n, dtype=float, device=dev),
+        wp.zeros(n, dtype=wp.vec3, device=dev),
+        wp.zeros(views.n, dtype=vec6, device=dev),
+        g_mean2d,
+    )
+    if bins.count:
+        wp.launch(
+            blend_backward_kernel,
+            dim=shape,
+            inputs=[
+                proj.mean2d, proj.conic, proj.opacity, proj.depth, gaussians.colors, bins.values,
+                bins.tile_start, views.cameras, n, views.tiles_x, views.tiles_x * views.tiles_y,
+                rendered.color, rendered.depth, rendered.alpha, rendered.transmittance,
+                rendered.n_contrib, gC, gD, gA,
+            ],
+            outputs=[g_mean2d, g_conic, g_opacity, g_depth, grads.colors],
+            device=dev,
+        )  # fmt: skip
+    if total:
+        wp.launch(
+            project_gaussians_backward_kernel,
+            dim=total,
+            inputs=[
+                gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
+                views.cameras, views.viewmats, n, proj.visible, proj.opacity,
+                g_mean2d, g_conic, g_depth, g_opacity,
+            ],
+            outputs=[grads.means, grads.quats, grads.log_scales, grads.opacity_logits, grads.pose],
+            device=dev,
+        )  # fmt: skip
+    return grads
