@@ -26,43 +26,72 @@ import warp as wp
 
 from .camera import Camera
 from .projection import ALPHA_MIN
-from .tiles import MAX_MAHALANOBIS2, TILE_SIZE, mahalanobis2
+from .tiles import MAX_MAHALANOBIS2, TILE_SIZE, support_mahalanobis2
+
+# Hand-written adjoints only: skip Warp's generated backward code (faster compiles).
+wp.set_module_options({"enable_backward": False})
 
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)
 
+#: One splat as the blender reads it, gathered in sorted-list order so each tile's
+#: list is one contiguous run: (mean x, mean y, conic a, b, c, opacity, depth,
+#: r, g, b, support m^2 bound, unused).
+splat_record = wp.types.vector(length=12, dtype=wp.float32)
+
+
+@wp.kernel
+def gather_splats_kernel(
+    values: wp.array(dtype=wp.int32),  # sorted flat indices
+    mean2d: wp.array(dtype=wp.vec2),
+    conic: wp.array(dtype=wp.vec3),
+    opacity: wp.array(dtype=float),
+    depth: wp.array(dtype=float),
+    colors: wp.array(dtype=wp.vec3),  # [N]
+    n_gaussians: int,
+    records: wp.array(dtype=splat_record),  # [count] out
+):
+    j = wp.tid()
+    flat = values[j]
+    mu = mean2d[flat]
+    q = conic[flat]
+    o = opacity[flat]
+    c = colors[flat % n_gaussians]
+    records[j] = splat_record(
+        mu[0], mu[1], q[0], q[1], q[2], o, depth[flat], c[0], c[1], c[2], support_mahalanobis2(o), 0.0
+    )
+
 
 @wp.func
-def splat_alpha(mu: wp.vec2, q: wp.vec3, o: float, px: float, py: float):
-    """``(alpha, gaussian)`` of one splat at pixel ``(px, py)``; alpha 0 outside 3 sigma."""
-    m = mahalanobis2(q, px - mu[0], py - mu[1])
-    if m > MAX_MAHALANOBIS2:
+def splat_alpha(r: splat_record, px: float, py: float):
+    """``(alpha, gaussian)`` of one splat at pixel ``(px, py)``; alpha 0 outside 3 sigma
+    or where it cannot reach 1/255 (checked before the exponential, which is costly)."""
+    dx = px - r[0]
+    dy = py - r[1]
+    m = r[2] * dx * dx + 2.0 * r[3] * dx * dy + r[4] * dy * dy
+    if m > MAX_MAHALANOBIS2 or m > r[10]:
         return 0.0, 0.0
     g = wp.exp(-0.5 * m)
-    return wp.min(ALPHA_MAX, o * g), g
+    return wp.min(ALPHA_MAX, r[5] * g), g
 
 
 @wp.kernel
 def blend_kernel(
-    mean2d: wp.array(dtype=wp.vec2),  # [C*N]
-    conic: wp.array(dtype=wp.vec3),  # [C*N]
-    opacity: wp.array(dtype=float),  # [C*N]
-    depth: wp.array(dtype=float),  # [C*N]
-    colors: wp.array(dtype=wp.vec3),  # [N] RGB
-    values: wp.array(dtype=wp.int32),  # sorted flat indices
+    records: wp.array(dtype=splat_record),  # [count] in sorted-list order
     tile_start: wp.array(dtype=wp.int32),  # [C*tiles]
     tile_end: wp.array(dtype=wp.int32),  # [C*tiles]
     cameras: wp.array(dtype=Camera),  # [C]
-    n_gaussians: int,
     tiles_x: int,
     tiles_per_camera: int,
+    row0: int,  # first image row of this launch (the launch covers a band of rows)
     out_color: wp.array(dtype=wp.vec3, ndim=3),  # [C,H,W]
     out_depth: wp.array(dtype=float, ndim=3),  # [C,H,W] m
     out_alpha: wp.array(dtype=float, ndim=3),  # [C,H,W]
     out_T: wp.array(dtype=float, ndim=3),  # [C,H,W] final transmittance
     n_contrib: wp.array(dtype=wp.int32, ndim=3),  # [C,H,W]
 ):
-    c, y, x = wp.tid()
+    c, yb, x = wp.tid()
+    y = yb + row0
     cam = cameras[c]
     color = wp.vec3(0.0)
     dacc = float(0.0)
@@ -75,16 +104,16 @@ def blend_kernel(
         px = float(x)
         py = float(y)
         for j in range(start, end):
-            flat = values[j]
-            alpha, g = splat_alpha(mean2d[flat], conic[flat], opacity[flat], px, py)
+            r = records[j]
+            alpha, g = splat_alpha(r, px, py)
             if alpha < ALPHA_MIN:
                 continue
             next_T = T * (1.0 - alpha)
             if next_T < T_MIN:
                 break
             w = alpha * T
-            color += w * colors[flat % n_gaussians]
-            dacc += w * depth[flat]
+            color += w * wp.vec3(r[7], r[8], r[9])
+            dacc += w * r[6]
             T = next_T
             last = j - start + 1
     out_color[c, y, x] = color
@@ -100,17 +129,14 @@ def blend_kernel(
 
 @wp.kernel
 def blend_backward_kernel(
-    mean2d: wp.array(dtype=wp.vec2),
-    conic: wp.array(dtype=wp.vec3),
-    opacity: wp.array(dtype=float),
-    depth: wp.array(dtype=float),
-    colors: wp.array(dtype=wp.vec3),
+    records: wp.array(dtype=splat_record),
     values: wp.array(dtype=wp.int32),
     tile_start: wp.array(dtype=wp.int32),
     cameras: wp.array(dtype=Camera),
     n_gaussians: int,
     tiles_x: int,
     tiles_per_camera: int,
+    row0: int,
     out_color: wp.array(dtype=wp.vec3, ndim=3),  # forward outputs
     out_depth: wp.array(dtype=float, ndim=3),
     out_alpha: wp.array(dtype=float, ndim=3),
@@ -125,7 +151,8 @@ def blend_backward_kernel(
     grad_splat_depth: wp.array(dtype=float),  # [C*N] out
     grad_colors: wp.array(dtype=wp.vec3),  # [N] out
 ):
-    c, y, x = wp.tid()
+    c, yb, x = wp.tid()
+    y = yb + row0
     cam = cameras[c]
     if x >= cam.width or y >= cam.height:
         return
@@ -148,16 +175,15 @@ def blend_backward_kernel(
     S = wp.vec3(0.0)
     Sd = float(0.0)
     for j in range(start, start + n):
-        flat = values[j]
-        mu = mean2d[flat]
-        q = conic[flat]
-        o = opacity[flat]
-        alpha, g = splat_alpha(mu, q, o, px, py)
+        r = records[j]
+        alpha, g = splat_alpha(r, px, py)
         if alpha < ALPHA_MIN:
             continue
+        flat = values[j]
         i = flat % n_gaussians
-        ci = colors[i]
-        di = depth[flat]
+        ci = wp.vec3(r[7], r[8], r[9])
+        di = r[6]
+        o = r[5]
         w = alpha * T
         wp.atomic_add(grad_colors, i, w * gC)
         wp.atomic_add(grad_splat_depth, flat, w * g_dacc)
@@ -172,7 +198,7 @@ def blend_backward_kernel(
             continue  # alpha clamped at 0.99: no gradient to opacity or shape
         wp.atomic_add(grad_opacity, flat, g_alpha * g)
         g_m = -0.5 * g_alpha * o * g  # dL/dm, m = d^T conic d
-        dx = px - mu[0]
-        dy = py - mu[1]
+        dx = px - r[0]
+        dy = py - r[1]
         wp.atomic_add(grad_conic, flat, g_m * wp.vec3(dx * dx, 2.0 * dx * dy, dy * dy))
-        wp.atomic_add(grad_mean2d, flat, -2.0 * g_m * wp.vec2(q[0] * dx + q[1] * dy, q[1] * dx + q[2] * dy))
+        wp.atomic_add(grad_mean2d, flat, -2.0 * g_m * wp.vec2(r[2] * dx + r[3] * dy, r[3] * dx + r[4] * dy))

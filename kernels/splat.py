@@ -12,12 +12,14 @@ the views' device; ``*.numpy()`` gives NumPy views of them on the CPU.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from .blend import blend_backward_kernel, blend_kernel
+from .blend import blend_backward_kernel, blend_kernel, gather_splats_kernel, splat_record
 from .camera import Camera
 from .projection import project_gaussians_backward_kernel, project_gaussians_kernel
 from .se3 import vec6
@@ -25,6 +27,40 @@ from .tiles import TILE_SIZE, count_tiles_kernel, tile_ranges_kernel, write_tile
 
 NEAR = 0.01  # m, DESIGN.md
 FAR = 100.0  # m
+
+# Warp runs a CPU launch on one thread. The per-pixel kernels are launched over bands of
+# rows from several Python threads instead (Warp's CPU kernels keep no global state and
+# ctypes releases the GIL), a few bands per worker so uneven rows balance out.
+_BANDS_PER_WORKER = 4
+_pool: ThreadPoolExecutor | None = None
+
+
+def cpu_workers() -> int:
+    """CPU threads used for per-pixel kernels: ``MCGS_WARP_CPU_THREADS`` or the core count."""
+    return max(1, int(os.environ.get("MCGS_WARP_CPU_THREADS", os.cpu_count() or 1)))
+
+
+def _run_bands(device, height: int, launch_band) -> int:
+    """Call ``launch_band(worker, row0, rows)`` over bands of image rows. On CUDA one call
+    covers all rows; on the CPU worker ``w`` runs bands ``w, w + workers, ...`` in order.
+    Returns the number of workers used."""
+    global _pool
+    workers = 1 if device.is_cuda else min(cpu_workers(), max(1, height))
+    if workers == 1:
+        launch_band(0, 0, height)
+        return 1
+    edges = np.linspace(0, height, workers * _BANDS_PER_WORKER + 1).astype(int)
+    bands = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    if _pool is None or _pool._max_workers < workers:
+        _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mcgs-warp")
+
+    def work(w):
+        for row0, rows in bands[w::workers]:
+            launch_band(w, row0, rows)
+
+    for f in [_pool.submit(work, w) for w in range(workers)]:
+        f.result()
+    return workers
 
 
 @dataclass
@@ -142,6 +178,7 @@ class Rendered:
     n_contrib: wp.array  # [C,H,W] int32, list entries walked up to the last contributor
     projection: Projection
     bins: TileBins
+    records: wp.array  # [count] splat_record, splats in sorted-list order
 
 
 @dataclass
@@ -230,6 +267,15 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
     """Front-to-back alpha blending of every view's pixels."""
     dev = views.device
     shape = (views.n, views.height, views.width)
+    records = wp.empty(bins.count, dtype=splat_record, device=dev)
+    if bins.count:
+        wp.launch(
+            gather_splats_kernel,
+            dim=bins.count,
+            inputs=[bins.values, proj.mean2d, proj.conic, proj.opacity, proj.depth, colors, proj.n_gaussians],
+            outputs=[records],
+            device=dev,
+        )
     out = Rendered(
         wp.empty(shape, dtype=wp.vec3, device=dev),
         wp.empty(shape, dtype=float, device=dev),
@@ -238,18 +284,20 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
         wp.empty(shape, dtype=wp.int32, device=dev),
         proj,
         bins,
+        records,
     )
-    wp.launch(
-        blend_kernel,
-        dim=shape,
-        inputs=[
-            proj.mean2d, proj.conic, proj.opacity, proj.depth, colors, bins.values,
-            bins.tile_start, bins.tile_end, views.cameras, proj.n_gaussians,
-            views.tiles_x, views.tiles_x * views.tiles_y,
-        ],
-        outputs=[out.color, out.depth, out.alpha, out.transmittance, out.n_contrib],
-        device=dev,
-    )  # fmt: skip
+    tiles = (views.tiles_x, views.tiles_x * views.tiles_y)
+
+    def band(worker, row0, rows):
+        wp.launch(
+            blend_kernel,
+            dim=(views.n, rows, views.width),
+            inputs=[records, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0],
+            outputs=[out.color, out.depth, out.alpha, out.transmittance, out.n_contrib],
+            device=dev,
+        )
+
+    _run_bands(dev, views.height, band)
     return out
 
 
@@ -299,18 +347,31 @@ def render_backward(
         g_mean2d,
     )
     if bins.count:
-        wp.launch(
-            blend_backward_kernel,
-            dim=shape,
-            inputs=[
-                proj.mean2d, proj.conic, proj.opacity, proj.depth, gaussians.colors, bins.values,
-                bins.tile_start, views.cameras, n, views.tiles_x, views.tiles_x * views.tiles_y,
-                rendered.color, rendered.depth, rendered.alpha, rendered.transmittance,
-                rendered.n_contrib, gC, gD, gA,
-            ],
-            outputs=[g_mean2d, g_conic, g_opacity, g_depth, grads.colors],
-            device=dev,
-        )  # fmt: skip
+        # Warp's CPU atomics are plain adds, so each CPU worker accumulates into buffers
+        # of its own, summed afterwards in worker order (deterministic).
+        main = [g_mean2d, g_conic, g_opacity, g_depth, grads.colors]
+        per_worker = {0: main}
+
+        def band(worker, row0, rows):
+            if worker not in per_worker:
+                per_worker[worker] = [wp.zeros_like(a) for a in main]
+            wp.launch(
+                blend_backward_kernel,
+                dim=(views.n, rows, views.width),
+                inputs=[
+                    rendered.records, bins.values, bins.tile_start, views.cameras, n,
+                    views.tiles_x, views.tiles_x * views.tiles_y, row0,
+                    rendered.color, rendered.depth, rendered.alpha, rendered.transmittance,
+                    rendered.n_contrib, gC, gD, gA,
+                ],
+                outputs=per_worker[worker],
+                device=dev,
+            )  # fmt: skip
+
+        workers = _run_bands(dev, views.height, band)
+        for w in range(1, workers):
+            for dst, src in zip(main, per_worker[w]):
+                dst.numpy()[...] += src.numpy()  # CPU only: zero-copy views
     if total:
         wp.launch(
             project_gaussians_backward_kernel,

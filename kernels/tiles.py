@@ -24,6 +24,9 @@ import warp as wp
 
 from .camera import Camera
 
+# No autodiff through binning: skip Warp's generated backward code (faster compiles).
+wp.set_module_options({"enable_backward": False})
+
 TILE_SIZE = wp.constant(16)
 #: Largest Mahalanobis distance^2 at which a Gaussian is blended (3 sigma).
 MAX_MAHALANOBIS2 = wp.constant(9.0)
