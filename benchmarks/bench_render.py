@@ -60,7 +60,7 @@ def main():
     views = Views.create([cam], np.eye(4)[None], device)
 
     print(f"device: {device} ({device.name}); image 640x480; median of {args.repeats} runs, seconds")
-    print(f"{'N':>8} {'pairs/px':>9} {'project':>8} {'sort':>8} {'blend':>8} {'forward':>8} {'backward':>9}")
+    print(f"{'N':>8} {'list/tile':>9} {'project':>8} {'sort':>8} {'blend':>8} {'forward':>8} {'backward':>9}")
     for n in args.sizes:
         g = Gaussians.from_numpy(*frustum_scene(n, cam, rng), device=device)
         t_proj, proj = timed(lambda: project(g, views), args.repeats, device)
@@ -69,7 +69,7 @@ def main():
         t_fwd, out = timed(lambda: render(g, views), args.repeats, device)
         grad = wp.array(np.full((1, 480, 640, 3), 1e-3, np.float32), dtype=wp.vec3, device=device)
         t_bwd, _ = timed(lambda: render_backward(g, views, out, grad_color=grad), args.repeats, device)
-        pairs = out.bins.count * 256 / (640 * 480)
+        pairs = out.bins.count / (views.tiles_x * views.tiles_y)
         print(f"{n:>8} {pairs:>9.1f} {t_proj:>8.4f} {t_sort:>8.4f} {t_blend:>8.4f} {t_fwd:>8.4f} {t_bwd:>9.4f}")
 
     # Against the NumPy reference on a small scene.

@@ -10,7 +10,7 @@ Modules:
     projection  EWA projection of Gaussians and its adjoint (incl. camera pose)
     tiles       tile binning with radix-sorted (tile, depth) keys
     blend       front-to-back alpha blending and its adjoint
-    splat       Python entry points: project, bin_tiles, blend, render, render_backward
+    splat       Python stages: project, bin_tiles, blend, their backwards, render, render_backward
     reference   NumPy float64 brute-force twin used by the tests
 """
 
@@ -23,11 +23,15 @@ from .splat import (
     Gradients,
     Projection,
     Rendered,
+    SplatGradients,
     TileBins,
     Views,
     bin_tiles,
     blend,
+    blend_backward,
+    cpu_workers,
     project,
+    project_backward,
     render,
     render_backward,
 )
@@ -44,13 +48,17 @@ __all__ = [
     "PINHOLE",
     "Projection",
     "Rendered",
+    "SplatGradients",
     "TileBins",
     "Views",
     "bin_tiles",
     "blend",
+    "blend_backward",
+    "cpu_workers",
     "make_camera",
     "mat66",
     "project",
+    "project_backward",
     "render",
     "render_backward",
     "vec6",

@@ -29,15 +29,16 @@ from .projection import ALPHA_MIN
 from .tiles import MAX_MAHALANOBIS2, TILE_SIZE, support_mahalanobis2
 
 # Hand-written adjoints only: skip Warp's generated backward code (faster compiles).
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)
 
 #: One splat as the blender reads it, gathered in sorted-list order so each tile's
-#: list is one contiguous run: (mean x, mean y, conic a, b, c, opacity, depth,
-#: r, g, b, support m^2 bound, unused).
-splat_record = wp.types.vector(length=12, dtype=wp.float32)
+#: list is one contiguous run: (mean x, mean y, conic a, b, c, support m^2 bound,
+#: opacity, depth); 32 bytes, read for every list entry. Colours (read only for
+#: contributing entries) are gathered beside it.
+splat_record = wp.types.vector(length=8, dtype=wp.float32)
 
 
 @wp.kernel
@@ -50,16 +51,15 @@ def gather_splats_kernel(
     colors: wp.array(dtype=wp.vec3),  # [N]
     n_gaussians: int,
     records: wp.array(dtype=splat_record),  # [count] out
+    record_colors: wp.array(dtype=wp.vec3),  # [count] out
 ):
     j = wp.tid()
     flat = values[j]
     mu = mean2d[flat]
     q = conic[flat]
     o = opacity[flat]
-    c = colors[flat % n_gaussians]
-    records[j] = splat_record(
-        mu[0], mu[1], q[0], q[1], q[2], o, depth[flat], c[0], c[1], c[2], support_mahalanobis2(o), 0.0
-    )
+    records[j] = splat_record(mu[0], mu[1], q[0], q[1], q[2], support_mahalanobis2(o), o, depth[flat])
+    record_colors[j] = colors[flat % n_gaussians]
 
 
 @wp.func
@@ -69,15 +69,16 @@ def splat_alpha(r: splat_record, px: float, py: float):
     dx = px - r[0]
     dy = py - r[1]
     m = r[2] * dx * dx + 2.0 * r[3] * dx * dy + r[4] * dy * dy
-    if m > MAX_MAHALANOBIS2 or m > r[10]:
+    if m > r[5] or m > MAX_MAHALANOBIS2:
         return 0.0, 0.0
     g = wp.exp(-0.5 * m)
-    return wp.min(ALPHA_MAX, r[5] * g), g
+    return wp.min(ALPHA_MAX, r[6] * g), g
 
 
 @wp.kernel
 def blend_kernel(
     records: wp.array(dtype=splat_record),  # [count] in sorted-list order
+    record_colors: wp.array(dtype=wp.vec3),  # [count]
     tile_start: wp.array(dtype=wp.int32),  # [C*tiles]
     tile_end: wp.array(dtype=wp.int32),  # [C*tiles]
     cameras: wp.array(dtype=Camera),  # [C]
@@ -112,8 +113,8 @@ def blend_kernel(
             if next_T < T_MIN:
                 break
             w = alpha * T
-            color += w * wp.vec3(r[7], r[8], r[9])
-            dacc += w * r[6]
+            color += w * record_colors[j]
+            dacc += w * r[7]
             T = next_T
             last = j - start + 1
     out_color[c, y, x] = color
@@ -130,6 +131,7 @@ def blend_kernel(
 @wp.kernel
 def blend_backward_kernel(
     records: wp.array(dtype=splat_record),
+    record_colors: wp.array(dtype=wp.vec3),
     values: wp.array(dtype=wp.int32),
     tile_start: wp.array(dtype=wp.int32),
     cameras: wp.array(dtype=Camera),
@@ -181,9 +183,9 @@ def blend_backward_kernel(
             continue
         flat = values[j]
         i = flat % n_gaussians
-        ci = wp.vec3(r[7], r[8], r[9])
-        di = r[6]
-        o = r[5]
+        ci = record_colors[j]
+        di = r[7]
+        o = r[6]
         w = alpha * T
         wp.atomic_add(grad_colors, i, w * gC)
         wp.atomic_add(grad_splat_depth, flat, w * g_dacc)

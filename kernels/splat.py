@@ -179,6 +179,7 @@ class Rendered:
     projection: Projection
     bins: TileBins
     records: wp.array  # [count] splat_record, splats in sorted-list order
+    record_colors: wp.array  # [count] vec3, their colours
 
 
 @dataclass
@@ -268,12 +269,13 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
     dev = views.device
     shape = (views.n, views.height, views.width)
     records = wp.empty(bins.count, dtype=splat_record, device=dev)
+    record_colors = wp.empty(bins.count, dtype=wp.vec3, device=dev)
     if bins.count:
         wp.launch(
             gather_splats_kernel,
             dim=bins.count,
             inputs=[bins.values, proj.mean2d, proj.conic, proj.opacity, proj.depth, colors, proj.n_gaussians],
-            outputs=[records],
+            outputs=[records, record_colors],
             device=dev,
         )
     out = Rendered(
@@ -285,6 +287,7 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
         proj,
         bins,
         records,
+        record_colors,
     )
     tiles = (views.tiles_x, views.tiles_x * views.tiles_y)
 
@@ -292,7 +295,7 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
         wp.launch(
             blend_kernel,
             dim=(views.n, rows, views.width),
-            inputs=[records, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0],
+            inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0],
             outputs=[out.color, out.depth, out.alpha, out.transmittance, out.n_contrib],
             device=dev,
         )
@@ -315,6 +318,97 @@ def _image_grad(grad, shape, dtype, dev):
     return wp.array(np.ascontiguousarray(grad, dtype=np.float32), dtype=dtype, device=dev)
 
 
+@dataclass
+class SplatGradients:
+    """Gradients w.r.t. the 2D splats (what :func:`blend_backward` gives)."""
+
+    mean2d: wp.array  # [C*N] vec2
+    conic: wp.array  # [C*N] vec3
+    opacity: wp.array  # [C*N] float
+    depth: wp.array  # [C*N] float
+    colors: wp.array  # [N] vec3
+
+
+def blend_backward(rendered: Rendered, views: Views, grad_color=None, grad_depth=None, grad_alpha=None) -> SplatGradients:
+    """Adjoint of :func:`blend`: image gradients (``grad_color`` [C,H,W,3], ``grad_depth``
+    [C,H,W] on the normalized depth, ``grad_alpha`` [C,H,W]; NumPy or Warp arrays, ``None``
+    for zero) to gradients w.r.t. each splat's 2D mean, conic, opacity, depth and colour."""
+    dev = views.device
+    shape = (views.n, views.height, views.width)
+    gC = _image_grad(grad_color, shape, wp.vec3, dev)
+    gD = _image_grad(grad_depth, shape, float, dev)
+    gA = _image_grad(grad_alpha, shape, float, dev)
+    proj, bins = rendered.projection, rendered.bins
+    n, total = proj.n_gaussians, proj.mean2d.shape[0]
+
+    def zeros():
+        return SplatGradients(
+            wp.zeros(total, dtype=wp.vec2, device=dev),
+            wp.zeros(total, dtype=wp.vec3, device=dev),
+            wp.zeros(total, dtype=float, device=dev),
+            wp.zeros(total, dtype=float, device=dev),
+            wp.zeros(n, dtype=wp.vec3, device=dev),
+        )
+
+    out = zeros()
+    if bins.count == 0:
+        return out
+    # Warp's CPU atomics are plain adds, so each CPU worker accumulates into buffers of
+    # its own, summed afterwards in worker order (deterministic for a worker count).
+    workers = 1 if dev.is_cuda else cpu_workers()
+    per_worker = [out] + [zeros() for _ in range(1, workers)]
+
+    def band(worker, row0, rows):
+        g = per_worker[worker]
+        wp.launch(
+            blend_backward_kernel,
+            dim=(views.n, rows, views.width),
+            inputs=[
+                rendered.records, rendered.record_colors, bins.values, bins.tile_start, views.cameras, n,
+                views.tiles_x, views.tiles_x * views.tiles_y, row0,
+                rendered.color, rendered.depth, rendered.alpha, rendered.transmittance,
+                rendered.n_contrib, gC, gD, gA,
+            ],
+            outputs=[g.mean2d, g.conic, g.opacity, g.depth, g.colors],
+            device=dev,
+        )  # fmt: skip
+
+    used = _run_bands(dev, views.height, band)
+    for g in per_worker[1:used]:
+        for name in ("mean2d", "conic", "opacity", "depth", "colors"):
+            getattr(out, name).numpy()[...] += getattr(g, name).numpy()  # CPU only: zero-copy views
+    return out
+
+
+def project_backward(gaussians: Gaussians, views: Views, proj: Projection, splat_grads: SplatGradients) -> Gradients:
+    """Adjoint of :func:`project`: splat gradients to Gaussian parameters and camera poses."""
+    dev = views.device
+    n, total = gaussians.n, proj.mean2d.shape[0]
+    grads = Gradients(
+        wp.zeros(n, dtype=wp.vec3, device=dev),
+        wp.zeros(n, dtype=wp.vec4, device=dev),
+        wp.zeros(n, dtype=wp.vec3, device=dev),
+        wp.zeros(n, dtype=float, device=dev),
+        splat_grads.colors,
+        wp.zeros(views.n, dtype=vec6, device=dev),
+        splat_grads.mean2d,
+    )
+    if total:
+        g = splat_grads
+        wp.launch(
+            project_gaussians_backward_kernel,
+            dim=total,
+            inputs=[
+                gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
+                views.cameras, views.viewmats, n, proj.visible, proj.opacity,
+                g.mean2d, g.conic, g.depth, g.opacity,
+            ],
+            outputs=[grads.means, grads.quats, grads.log_scales, grads.opacity_logits, grads.pose],
+            device=dev,
+        )  # fmt: skip
+    return grads
+
+
 def render_backward(
     gaussians: Gaussians,
     views: Views,
@@ -325,63 +419,6 @@ def render_backward(
 ) -> Gradients:
     """Gradients of a loss given its gradients w.r.t. the rendered images
     (``grad_color`` [C,H,W,3], ``grad_depth`` [C,H,W], ``grad_alpha`` [C,H,W];
-    NumPy or Warp arrays, ``None`` for zero)."""
-    dev = views.device
-    shape = (views.n, views.height, views.width)
-    gC = _image_grad(grad_color, shape, wp.vec3, dev)
-    gD = _image_grad(grad_depth, shape, float, dev)
-    gA = _image_grad(grad_alpha, shape, float, dev)
-    proj, bins = rendered.projection, rendered.bins
-    n, total = gaussians.n, proj.mean2d.shape[0]
-    g_mean2d = wp.zeros(total, dtype=wp.vec2, device=dev)
-    g_conic = wp.zeros(total, dtype=wp.vec3, device=dev)
-    g_opacity = wp.zeros(total, dtype=float, device=dev)
-    g_depth = wp.zeros(total, dtype=float, device=dev)
-    grads = Gradients(
-        wp.zeros(n, dtype=wp.vec3, device=dev),
-        wp.zeros(n, dtype=wp.vec4, device=dev),
-        wp.zeros(n, dtype=wp.vec3, device=dev),
-        wp.zeros(n, dtype=float, device=dev),
-        wp.zeros(n, dtype=wp.vec3, device=dev),
-        wp.zeros(views.n, dtype=vec6, device=dev),
-        g_mean2d,
-    )
-    if bins.count:
-        # Warp's CPU atomics are plain adds, so each CPU worker accumulates into buffers
-        # of its own, summed afterwards in worker order (deterministic).
-        main = [g_mean2d, g_conic, g_opacity, g_depth, grads.colors]
-        per_worker = {0: main}
-
-        def band(worker, row0, rows):
-            if worker not in per_worker:
-                per_worker[worker] = [wp.zeros_like(a) for a in main]
-            wp.launch(
-                blend_backward_kernel,
-                dim=(views.n, rows, views.width),
-                inputs=[
-                    rendered.records, bins.values, bins.tile_start, views.cameras, n,
-                    views.tiles_x, views.tiles_x * views.tiles_y, row0,
-                    rendered.color, rendered.depth, rendered.alpha, rendered.transmittance,
-                    rendered.n_contrib, gC, gD, gA,
-                ],
-                outputs=per_worker[worker],
-                device=dev,
-            )  # fmt: skip
-
-        workers = _run_bands(dev, views.height, band)
-        for w in range(1, workers):
-            for dst, src in zip(main, per_worker[w]):
-                dst.numpy()[...] += src.numpy()  # CPU only: zero-copy views
-    if total:
-        wp.launch(
-            project_gaussians_backward_kernel,
-            dim=total,
-            inputs=[
-                gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits,
-                views.cameras, views.viewmats, n, proj.visible, proj.opacity,
-                g_mean2d, g_conic, g_depth, g_opacity,
-            ],
-            outputs=[grads.means, grads.quats, grads.log_scales, grads.opacity_logits, grads.pose],
-            device=dev,
-        )  # fmt: skip
-    return grads
+    NumPy or Warp arrays, ``None`` for zero): ``blend_backward -> project_backward``."""
+    splat_grads = blend_backward(rendered, views, grad_color, grad_depth, grad_alpha)
+    return project_backward(gaussians, views, rendered.projection, splat_grads)

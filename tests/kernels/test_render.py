@@ -112,3 +112,25 @@ def test_nothing_visible_renders_empty():
     out = render(Gaussians.from_numpy(*scene), Views.create([cam], np.eye(4)[None]))
     assert out.bins.count == 0
     assert not out.alpha.numpy().any() and not out.color.numpy().any()
+
+
+def test_cpu_worker_count_does_not_change_results(monkeypatch):
+    """Row bands over 1 or 3 CPU threads give the same images and (up to summation
+    order) the same gradients."""
+    from mcgs_warp.kernels import render_backward
+
+    rng = np.random.default_rng(9)
+    cam = cameras()["fisheye"]
+    T = random_pose(rng)
+    g = Gaussians.from_numpy(*random_scene(rng, 120, "fisheye", T))
+    v = Views.create([cam, cameras()["pinhole"]], np.stack([T, T]))
+    gC = rng.normal(size=(2, v.height, v.width, 3))
+    results = []
+    for workers in ("1", "3"):
+        monkeypatch.setenv("MCGS_WARP_CPU_THREADS", workers)
+        out = render(g, v)
+        grads = render_backward(g, v, out, grad_color=gC, grad_depth=gC[..., 0], grad_alpha=gC[..., 1])
+        results.append((out.color.numpy(), grads.means.numpy(), grads.colors.numpy(), grads.pose.numpy()))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    for a, b in zip(results[0][1:], results[1][1:]):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * np.abs(a).max())
