@@ -52,7 +52,7 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 300_000])
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     wp.init()
     device = wp.get_device(args.device)
     rng = np.random.default_rng(0)

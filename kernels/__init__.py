@@ -8,6 +8,8 @@ Modules:
     camera      camera models (pinhole+radtan, fisheye, equirectangular) as wp.func
     se3         SE(3)/SO(3) Exp, Log, compose, inverse, adjoint as wp.func
     projection  EWA projection of Gaussians and its adjoint (incl. camera pose)
+    launch      per-pixel launches over row bands on all CPU cores
+    raycast     ray casting of procedural scenes (synthetic sequences)
     tiles       tile binning with radix-sorted (tile, depth) keys
     blend       front-to-back alpha blending and its adjoint
     splat       Python stages: project, bin_tiles, blend, their backwards, render, render_backward

@@ -12,8 +12,6 @@ the views' device; ``*.numpy()`` gives NumPy views of them on the CPU.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,47 +19,13 @@ import warp as wp
 
 from .blend import blend_backward_kernel, blend_kernel, gather_splats_kernel, splat_record
 from .camera import Camera
+from .launch import cpu_workers, run_row_bands
 from .projection import project_gaussians_backward_kernel, project_gaussians_kernel
 from .se3 import vec6
 from .tiles import TILE_SIZE, count_tiles_kernel, tile_ranges_kernel, write_tile_keys_kernel
 
 NEAR = 0.01  # m, DESIGN.md
 FAR = 100.0  # m
-
-# Warp runs a CPU launch on one thread. The per-pixel kernels are launched over bands of
-# rows from several Python threads instead (Warp's CPU kernels keep no global state and
-# ctypes releases the GIL), a few bands per worker so uneven rows balance out.
-_BANDS_PER_WORKER = 4
-_pool: ThreadPoolExecutor | None = None
-
-
-def cpu_workers() -> int:
-    """CPU threads used for per-pixel kernels: ``MCGS_WARP_CPU_THREADS`` or the core count."""
-    return max(1, int(os.environ.get("MCGS_WARP_CPU_THREADS", os.cpu_count() or 1)))
-
-
-def _run_bands(device, height: int, launch_band) -> int:
-    """Call ``launch_band(worker, row0, rows)`` over bands of image rows. On CUDA one call
-    covers all rows; on the CPU worker ``w`` runs bands ``w, w + workers, ...`` in order.
-    Returns the number of workers used."""
-    global _pool
-    workers = 1 if device.is_cuda else min(cpu_workers(), max(1, height))
-    if workers == 1:
-        launch_band(0, 0, height)
-        return 1
-    edges = np.linspace(0, height, workers * _BANDS_PER_WORKER + 1).astype(int)
-    bands = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-    if _pool is None or _pool._max_workers < workers:
-        _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mcgs-warp")
-
-    def work(w):
-        for row0, rows in bands[w::workers]:
-            launch_band(w, row0, rows)
-
-    for f in [_pool.submit(work, w) for w in range(workers)]:
-        f.result()
-    return workers
-
 
 @dataclass
 class Gaussians:
@@ -300,7 +264,7 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
             device=dev,
         )
 
-    _run_bands(dev, views.height, band)
+    run_row_bands(dev, views.height, band)
     return out
 
 
@@ -373,7 +337,7 @@ def blend_backward(rendered: Rendered, views: Views, grad_color=None, grad_depth
             device=dev,
         )  # fmt: skip
 
-    used = _run_bands(dev, views.height, band)
+    used = run_row_bands(dev, views.height, band)
     for g in per_worker[1:used]:
         for name in ("mean2d", "conic", "opacity", "depth", "colors"):
             getattr(out, name).numpy()[...] += getattr(g, name).numpy()  # CPU only: zero-copy views

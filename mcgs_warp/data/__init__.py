@@ -1,0 +1,38 @@
+"""Datasets: our folder format, EuRoC (MAV), TUM RGB-D, and the built-in synthetic sequence.
+
+:func:`open_sequence` recognizes the folder layout and returns a :class:`Sequence`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from .sequence import Frame, FolderSequence, FolderWriter, Sequence
+from .trajectory import Trajectory, read_tum, write_tum
+
+
+def open_sequence(path, rig_path=None) -> Sequence:
+    """Open a sequence folder: ours (``rig.yaml`` + ``timestamps.txt``), EuRoC
+    (``mav0/`` or ``cam0/data.csv``) or TUM RGB-D (``rgb.txt``). ``rig_path`` overrides
+    the TUM calibration."""
+    from .euroc import EurocSequence, is_euroc
+    from .tum import TumSequence
+
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(path, None, "data folder not found")
+    if (path / "rig.yaml").is_file() or (path / "timestamps.txt").is_file():
+        return FolderSequence(path)
+    if is_euroc(path):
+        return EurocSequence(path)
+    if (path / "rgb.txt").is_file():
+        return TumSequence(path, rig_path)
+    if not any(path.iterdir()):
+        raise InputError(path, None, "data folder is empty")
+    raise InputError(
+        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC) or rgb.txt (TUM RGB-D)"
+    )
+
+
+__all__ = ["Frame", "FolderSequence", "FolderWriter", "Sequence", "Trajectory", "open_sequence", "read_tum", "write_tum"]

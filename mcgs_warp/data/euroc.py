@@ -1,0 +1,146 @@
+"""EuRoC MAV dataset reader: the stereo pair as a 2-camera rig.
+
+Layout (the sequence folder, or its ``mav0/`` folder)::
+
+    mav0/cam0/data.csv        '#timestamp [ns],filename'
+    mav0/cam0/data/<ns>.png   8-bit grey images
+    mav0/cam0/sensor.yaml     T_BS (camera -> body/IMU), resolution, intrinsics, distortion
+    mav0/cam1/...
+    mav0/state_groundtruth_estimate0/data.csv   optional: t [ns], p (m), q (w, x, y, z), ...
+
+``sensor.yaml`` files start with OpenCV's ``%YAML:1.0`` line, which PyYAML rejects;
+:func:`mcgs_warp.rig.load_yaml` drops it. Frames are the timestamps both cameras
+have; images are replicated to RGB. Ground truth poses are of the body (IMU) frame,
+the frame ``T_BS`` maps into, so they are ``T_w_b``.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import pose
+from ..rig import CameraSpec, Rig, load_yaml, parse_pose
+from .sequence import Frame, Sequence
+from .trajectory import Trajectory
+
+DISTORTION_MODELS = {"radial-tangential": "pinhole", "radtan": "pinhole", "equidistant": "fisheye"}
+
+
+def _mav0(path: Path) -> Path:
+    return path / "mav0" if (path / "mav0").is_dir() else path
+
+
+def is_euroc(path) -> bool:
+    root = _mav0(Path(path))
+    return (root / "cam0" / "data.csv").is_file() or (root / "cam0" / "sensor.yaml").is_file()
+
+
+def read_csv_rows(path: Path, min_cols: int):
+    """Rows of a EuRoC csv (comment lines skipped), each with at least ``min_cols`` fields."""
+    if not path.is_file():
+        raise InputError(path, None, "file not found")
+    rows = []
+    with open(path, newline="", errors="replace") as f:
+        for lineno, row in enumerate(csv.reader(f), 1):
+            if not row or row[0].lstrip().startswith("#"):
+                continue
+            if len(row) < min_cols:
+                raise InputError(path, f"line {lineno}", f"expected at least {min_cols} comma-separated fields, got {len(row)}")
+            rows.append((lineno, [c.strip() for c in row]))
+    if not rows:
+        raise InputError(path, None, "no data rows")
+    return rows
+
+
+def read_sensor(path: Path, name: str) -> CameraSpec:
+    data = load_yaml(path)
+    if not isinstance(data, dict):
+        raise InputError(path, None, "expected a mapping of camera fields")
+    for key in ("T_BS", "resolution", "intrinsics"):
+        if key not in data:
+            raise InputError(path, key, "missing field")
+    tbs = data["T_BS"]
+    if not isinstance(tbs, dict) or "data" not in tbs:
+        raise InputError(path, "T_BS", "expected a mapping with rows, cols and data (16 numbers)")
+    data_list = tbs["data"]
+    if not isinstance(data_list, list) or len(data_list) != 16:
+        raise InputError(path, "T_BS.data", f"expected 16 numbers, got {len(data_list) if isinstance(data_list, list) else data_list!r}")
+    T_b_c = parse_pose(path, "T_BS.data", data_list)
+    dmodel = data.get("distortion_model", "radial-tangential")
+    if dmodel not in DISTORTION_MODELS:
+        raise InputError(path, "distortion_model", f"expected one of {', '.join(DISTORTION_MODELS)}, got {dmodel!r}")
+    from ..rig import parse_camera
+
+    cam = {
+        "name": name,
+        "model": DISTORTION_MODELS[dmodel],
+        "resolution": data["resolution"],
+        "intrinsics": data["intrinsics"],
+        "distortion": data.get("distortion_coefficients", []),
+    }
+    try:
+        spec = parse_camera(path, 0, cam)
+    except InputError as e:  # re-label the field with EuRoC's names
+        msg = str(e).replace("cameras[0].distortion", "distortion_coefficients").replace("cameras[0].", "")
+        raise InputError(None, None, msg) from None
+    spec.T_b_c = T_b_c
+    return spec
+
+
+def read_groundtruth(path: Path) -> Trajectory:
+    rows = read_csv_rows(path, 8)
+    t, p, q = [], [], []
+    for lineno, row in rows:
+        try:
+            vals = [float(v) for v in row[:8]]
+        except ValueError:
+            raise InputError(path, f"line {lineno}", "expected numbers") from None
+        if not np.all(np.isfinite(vals)):
+            raise InputError(path, f"line {lineno}", "contains NaN or Inf")
+        if t and vals[0] * 1e-9 <= t[-1]:
+            raise InputError(path, f"line {lineno}", "timestamps must increase")
+        t.append(vals[0] * 1e-9)
+        p.append(vals[1:4])
+        q.append([vals[5], vals[6], vals[7], vals[4]])  # (w, x, y, z) -> (x, y, z, w)
+    return Trajectory(np.array(t), pose(np.array(p), np.array(q)))
+
+
+class EurocSequence(Sequence):
+    def __init__(self, path):
+        self.root = _mav0(Path(path))
+        self.name = Path(path).name
+        cams, stamps, files = [], [], []
+        for i in (0, 1):
+            folder = self.root / f"cam{i}"
+            if not folder.is_dir():
+                raise InputError(folder, None, "missing camera folder (EuRoC stereo needs cam0 and cam1)")
+            cams.append(read_sensor(folder / "sensor.yaml", f"cam{i}"))
+            by_stamp = {}
+            for lineno, row in read_csv_rows(folder / "data.csv", 2):
+                try:
+                    ns = int(row[0])
+                except ValueError:
+                    raise InputError(folder / "data.csv", f"line {lineno}", f"expected an integer timestamp [ns], got {row[0]!r}") from None
+                by_stamp[ns] = folder / "data" / row[1]
+            stamps.append(by_stamp)
+            files.append(by_stamp)
+        common = sorted(set(stamps[0]) & set(stamps[1]))
+        if not common:
+            raise InputError(self.root, None, "cam0 and cam1 share no timestamps")
+        self.rig = Rig(cams)
+        self._ns = common
+        self._files = files
+        self.timestamps = np.array(common, dtype=np.float64) * 1e-9
+        gt = self.root / "state_groundtruth_estimate0" / "data.csv"
+        self.groundtruth = read_groundtruth(gt) if gt.is_file() else None
+
+    def load_frame(self, k: int) -> Frame:
+        from ..io import read_image
+
+        ns = self._ns[k]
+        images = [read_image(self._files[i][ns], (c.width, c.height)) for i, c in enumerate(self.rig.cameras)]
+        return Frame(k, float(self.timestamps[k]), images, [None, None])

@@ -1,0 +1,155 @@
+"""Synchronized multi-camera sequences, and our own folder format.
+
+A :class:`Sequence` is a rig plus frames: ``seq[k]`` loads frame k lazily (one
+image per camera, optional depth), so a long sequence never sits in memory.
+
+Our folder format::
+
+    rig.yaml                   the rig (mcgs_warp.rig)
+    timestamps.txt             one timestamp per frame, seconds, increasing
+    cam<i>/rgb/<index>.png     colour, index zero-padded to 6 digits (000000.png)
+    cam<i>/depth/<index>.png   optional: 16-bit depth in millimetres (0 = none)
+    groundtruth.txt            optional: rig body poses T_w_b, TUM format
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..rig import Rig, load_rig, save_rig
+from .trajectory import Trajectory, read_tum, write_tum
+
+DEPTH_SCALE_MM = 1000.0  # our depth PNGs: uint16 millimetres
+
+
+@dataclass
+class Frame:
+    """One synchronized rig frame."""
+
+    index: int
+    timestamp: float  # s, rig clock
+    images: list  # per camera: [H,W,3] float32 RGB in [0,1]
+    depths: list  # per camera: [H,W] float32 m (0 = no depth), or None
+
+
+class Sequence:
+    """Base class of the readers: a rig, timestamps, lazily loaded frames, optional ground truth."""
+
+    rig: Rig
+    timestamps: np.ndarray  # [K] s
+    groundtruth: Trajectory | None = None  # rig body poses T_w_b
+    name: str = ""
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __getitem__(self, k: int) -> Frame:
+        if not -len(self) <= k < len(self):
+            raise IndexError(f"frame {k} out of range for {len(self)} frames")
+        k = k % len(self)
+        return self.load_frame(k)
+
+    def __iter__(self):
+        for k in range(len(self)):
+            yield self.load_frame(k)
+
+    def load_frame(self, k: int) -> Frame:
+        raise NotImplementedError
+
+
+def read_timestamps(path) -> np.ndarray:
+    """One timestamp per line (extra columns ignored), strictly increasing."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, None, "file not found")
+    stamps = []
+    for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        try:
+            t = float(line.split()[0])
+        except ValueError:
+            raise InputError(path, f"line {lineno}", f"expected a timestamp in seconds, got {line!r}") from None
+        if not np.isfinite(t):
+            raise InputError(path, f"line {lineno}", "timestamp is NaN or Inf")
+        if stamps and t <= stamps[-1]:
+            raise InputError(path, f"line {lineno}", f"timestamps must increase, got {t} after {stamps[-1]}")
+        stamps.append(t)
+    if not stamps:
+        raise InputError(path, None, "no timestamps")
+    return np.array(stamps)
+
+
+def frame_name(index: int) -> str:
+    return f"{index:06d}.png"
+
+
+class FolderSequence(Sequence):
+    """Reader of our folder format (see module docstring)."""
+
+    def __init__(self, root):
+        from ..io import read_image  # noqa: F401  (fail early if OpenCV is missing)
+
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise InputError(self.root, None, "sequence folder not found")
+        self.name = self.root.name
+        self.rig = load_rig(self.root / "rig.yaml")
+        self.timestamps = read_timestamps(self.root / "timestamps.txt")
+        self.has_depth = []
+        for i in range(len(self.rig)):
+            rgb = self.root / f"cam{i}" / "rgb"
+            if not rgb.is_dir():
+                raise InputError(rgb, None, f"missing image folder for camera {i} ({self.rig.cameras[i].name})")
+            for k in range(len(self)):  # cheap existence check now, decoding later
+                if not (rgb / frame_name(k)).is_file():
+                    raise InputError(rgb / frame_name(k), None, f"missing frame {k} of {len(self)} (timestamps.txt lists {len(self)})")
+            self.has_depth.append((self.root / f"cam{i}" / "depth").is_dir())
+        gt = self.root / "groundtruth.txt"
+        self.groundtruth = read_tum(gt) if gt.is_file() else None
+
+    def load_frame(self, k: int) -> Frame:
+        from ..io import read_image
+
+        images, depths = [], []
+        for i, cam in enumerate(self.rig.cameras):
+            size = (cam.width, cam.height)
+            images.append(read_image(self.root / f"cam{i}" / "rgb" / frame_name(k), size))
+            if self.has_depth[i]:
+                raw = read_image(self.root / f"cam{i}" / "depth" / frame_name(k), size, depth=True)
+                depths.append(raw.astype(np.float32) / DEPTH_SCALE_MM)
+            else:
+                depths.append(None)
+        return Frame(k, float(self.timestamps[k]), images, depths)
+
+
+class FolderWriter:
+    """Writes frames in our folder format (atomically, file by file)."""
+
+    def __init__(self, root, rig: Rig):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.rig = rig
+        save_rig(rig, self.root / "rig.yaml")
+
+    def write_frame(self, k: int, images, depths=None) -> None:
+        from ..io import write_image
+
+        for i, img in enumerate(images):
+            write_image(self.root / f"cam{i}" / "rgb" / frame_name(k), img)
+            if depths is not None and depths[i] is not None:
+                mm = np.clip(np.round(np.asarray(depths[i]) * DEPTH_SCALE_MM), 0, 65535).astype(np.uint16)
+                write_image(self.root / f"cam{i}" / "depth" / frame_name(k), mm)
+
+    def finish(self, timestamps, groundtruth: Trajectory | None = None) -> None:
+        from ..io import atomic_write
+
+        with atomic_write(self.root / "timestamps.txt") as f:
+            f.writelines(f"{t:.9f}\n" for t in timestamps)
+        if groundtruth is not None:
+            write_tum(self.root / "groundtruth.txt", groundtruth)

@@ -1,0 +1,69 @@
+"""Trajectories in TUM format: one pose per line, ``t tx ty tz qx qy qz qw``
+(seconds, metres, unit quaternion x y z w); ``#`` starts a comment."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import matrix_to_quat, pose
+
+
+@dataclass
+class Trajectory:
+    timestamps: np.ndarray  # [K] s, increasing
+    poses: np.ndarray  # [K,4,4] T_w_x (x = rig body or camera), m
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+
+def read_tum(path, min_poses: int = 1) -> Trajectory:
+    """Read a TUM trajectory, validating every line (errors name file and line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, None, "trajectory file not found")
+    stamps, rows = [], []
+    for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise InputError(path, f"line {lineno}", f"expected 8 numbers 't tx ty tz qx qy qz qw', got {len(parts)}")
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            raise InputError(path, f"line {lineno}", f"expected numbers, got {line!r}") from None
+        if not np.all(np.isfinite(vals)):
+            raise InputError(path, f"line {lineno}", "contains NaN or Inf")
+        qn = np.linalg.norm(vals[4:])
+        if qn < 1e-6:
+            raise InputError(path, f"line {lineno}", "quaternion has zero norm")
+        if stamps and vals[0] <= stamps[-1]:
+            raise InputError(path, f"line {lineno}", f"timestamps must increase, got {vals[0]} after {stamps[-1]}")
+        stamps.append(vals[0])
+        rows.append(vals[1:])
+    if len(stamps) < min_poses:
+        raise InputError(path, None, f"expected at least {min_poses} poses, got {len(stamps)}")
+    rows = np.array(rows).reshape(-1, 7)
+    return Trajectory(np.array(stamps), pose(rows[:, :3], rows[:, 3:]))
+
+
+def write_tum(path, traj: Trajectory) -> None:
+    """Write a TUM trajectory atomically."""
+    from ..io import atomic_write
+
+    q = matrix_to_quat(traj.poses[:, :3, :3]) if len(traj) else np.zeros((0, 4))
+    with atomic_write(path) as f:
+        f.write("# timestamp tx ty tz qx qy qz qw\n")
+        for t, T, qq in zip(traj.timestamps, traj.poses, q):
+            x, y, z = T[:3, 3]
+            f.write(f"{t:.9f} {x:.9f} {y:.9f} {z:.9f} {qq[0]:.9f} {qq[1]:.9f} {qq[2]:.9f} {qq[3]:.9f}\n")

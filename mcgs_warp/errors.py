@@ -1,0 +1,21 @@
+"""The one error type for bad user input.
+
+Readers, config loaders and the CLI raise :class:`InputError` with a message that
+names the file, the field and what was expected, e.g.
+``configs/rig.yaml: cameras[1].intrinsics: expected 4 numbers, got 3``. The CLI
+prints it without a traceback and exits non-zero.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+class InputError(ValueError):
+    """Malformed or missing input; the message is meant for the user."""
+
+    def __init__(self, source, field: str | None, message: str):
+        self.source = os.fspath(source) if source is not None else None
+        self.field = field
+        where = ": ".join(p for p in (self.source, field) if p)
+        super().__init__(f"{where}: {message}" if where else message)

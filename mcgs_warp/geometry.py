@@ -1,0 +1,92 @@
+"""NumPy rigid-body helpers for host code (readers, rigs, evaluation).
+
+Poses are 4x4 float64 matrices ``T_a_b`` (frame b -> frame a); quaternions are
+``(x, y, z, w)`` as in Warp (DESIGN.md). The Warp-side twins live in
+``mcgs_warp.kernels.se3``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of quaternions [..., 4] ``(x, y, z, w)`` (normalized here)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(R) -> np.ndarray:
+    """Unit quaternions [..., 4] ``(x, y, z, w)`` with ``w >= 0`` of rotation matrices [..., 3, 3]."""
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    out = np.empty((len(flat), 4))
+    for k, m in enumerate(flat):
+        tr = np.trace(m)
+        if tr > 0:
+            s = 2.0 * np.sqrt(1.0 + tr)
+            q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+            q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+        elif m[1, 1] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+            q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+        else:
+            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+            q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+        q = np.asarray(q)
+        out[k] = q * (1.0 if q[3] >= 0 else -1.0) / np.linalg.norm(q)
+    return out.reshape(R.shape[:-2] + (4,))
+
+
+def pose(translation, quat_xyzw) -> np.ndarray:
+    """4x4 pose from a translation [3] and a quaternion [4] ``(x, y, z, w)``; batched over [..., ]."""
+    t = np.asarray(translation, dtype=np.float64)
+    T = np.zeros(t.shape[:-1] + (4, 4))
+    T[..., :3, :3] = quat_to_matrix(quat_xyzw)
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def invert(T) -> np.ndarray:
+    """Inverse of rigid transforms [..., 4, 4] (using the rotation's transpose)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = R
+    out[..., :3, 3] = -(R @ T[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def rotation_error(R, tol: float = 1e-4) -> str | None:
+    """Why ``R`` [3,3] is not a rotation (orthonormal, det +1) within ``tol``, or None."""
+    R = np.asarray(R, dtype=np.float64)
+    if not np.all(np.isfinite(R)):
+        return "contains NaN or Inf"
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > tol:
+        return f"rotation part is not orthonormal (max |R^T R - I| = {err:.2e})"
+    if np.linalg.det(R) < 0:
+        return "rotation part is a reflection (det = -1)"
+    return None
+
+
+def yaw_pitch_roll(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
+    """Rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (radians)."""
+    cz, sz, cy, sy, cx, sx = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    return Rz @ Ry @ Rx

@@ -1,0 +1,78 @@
+"""Atomic file output and image I/O.
+
+Every file a run writes goes to a temporary name beside its final one and is
+renamed into place (``os.replace``), so an interrupted run never leaves a
+truncated file under a final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+
+@contextlib.contextmanager
+def atomic_write(path, mode: str = "w", **kwargs):
+    """Open a temporary file beside ``path``; rename it to ``path`` when the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **kwargs) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def write_image(path, image: np.ndarray) -> None:
+    """Write a PNG atomically: ``[H,W,3]`` float RGB in [0,1] (8-bit) or ``[H,W]`` uint16."""
+    import cv2
+
+    if image.dtype == np.uint16:
+        data = image
+    else:
+        data = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        if data.ndim == 3:
+            data = np.ascontiguousarray(data[..., ::-1])  # RGB -> BGR for OpenCV
+    ok, buf = cv2.imencode(".png", data)
+    if not ok:
+        raise OSError(f"{path}: could not encode PNG")
+    with atomic_write(path, "wb") as f:
+        f.write(buf.tobytes())
+
+
+def read_image(path, expected_size: tuple[int, int] | None = None, depth: bool = False) -> np.ndarray:
+    """Read an image file.
+
+    ``depth=False``: colour (or grey, replicated) as ``[H,W,3]`` float32 RGB in [0,1].
+    ``depth=True``: a 16-bit PNG as ``[H,W]`` uint16 (scale it yourself).
+    ``expected_size`` ``(width, height)`` is checked; errors name the file."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, None, "image file is missing")
+    flags = cv2.IMREAD_UNCHANGED if depth else cv2.IMREAD_COLOR
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise InputError(path, None, "could not read image (unreadable or not an image)")
+    if depth:
+        if img.dtype != np.uint16 or img.ndim != 2:
+            raise InputError(path, None, f"expected a single-channel 16-bit depth PNG, got {img.dtype} with shape {img.shape}")
+    else:
+        img = img[..., ::-1].astype(np.float32) / 255.0
+    if expected_size is not None and (img.shape[1], img.shape[0]) != tuple(expected_size):
+        w, h = expected_size
+        raise InputError(path, None, f"expected image size {w}x{h}, got {img.shape[1]}x{img.shape[0]}")
+    return np.ascontiguousarray(img)

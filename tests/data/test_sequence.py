@@ -1,0 +1,104 @@
+"""Our folder format and TUM trajectories: round trips and clear errors."""
+
+import numpy as np
+import pytest
+
+from mcgs_warp.data import FolderSequence, FolderWriter, Trajectory, open_sequence, read_tum, write_tum
+from mcgs_warp.errors import InputError
+from mcgs_warp.geometry import pose
+from mcgs_warp.rig import CameraSpec, Rig
+
+
+def small_rig():
+    return Rig(
+        [
+            CameraSpec("a", "pinhole", 24, 16, (20.0, 20.0, 11.5, 7.5), (0.01,)),
+            CameraSpec("b", "fisheye", 20, 12, (10.0, 10.0, 9.5, 5.5), (0.01, 0.0, 0.0, 0.0)),
+        ]
+    )
+
+
+def random_trajectory(rng, n):
+    q = rng.normal(size=(n, 4))
+    return Trajectory(np.arange(n) * 0.1 + 1.0, pose(rng.normal(size=(n, 3)), q / np.linalg.norm(q, axis=1, keepdims=True)))
+
+
+def write_sequence(root, rng, n=3, depth=True):
+    rig = small_rig()
+    w = FolderWriter(root, rig)
+    frames = []
+    for k in range(n):
+        imgs = [rng.uniform(0, 1, (c.height, c.width, 3)) for c in rig.cameras]
+        deps = [rng.uniform(0.5, 20, (c.height, c.width)) for c in rig.cameras] if depth else None
+        w.write_frame(k, imgs, deps)
+        frames.append((imgs, deps))
+    traj = random_trajectory(rng, n)
+    w.finish(traj.timestamps, traj)
+    return rig, frames, traj
+
+
+def test_folder_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    rig, frames, traj = write_sequence(tmp_path / "seq", rng)
+    seq = open_sequence(tmp_path / "seq")
+    assert isinstance(seq, FolderSequence) and len(seq) == 3 and len(seq.rig) == 2
+    np.testing.assert_allclose(seq.timestamps, traj.timestamps)
+    for k in (0, 2, -1):
+        f = seq[k]
+        imgs, deps = frames[k]
+        for i in range(2):
+            np.testing.assert_allclose(f.images[i], imgs[i], atol=0.5 / 255 + 1e-6)  # 8-bit PNG
+            np.testing.assert_allclose(f.depths[i], deps[i], atol=0.5e-3 + 1e-6)  # millimetres
+    np.testing.assert_allclose(seq.groundtruth.poses, traj.poses, atol=1e-8)
+    with pytest.raises(IndexError):
+        seq[3]
+
+
+def test_missing_frame_wrong_size_and_bad_timestamps(tmp_path):
+    rng = np.random.default_rng(1)
+    root = tmp_path / "seq"
+    write_sequence(root, rng, depth=False)
+    (root / "cam1" / "rgb" / "000001.png").unlink()
+    with pytest.raises(InputError, match=r"cam1/rgb/000001.png: missing frame 1 of 3"):
+        FolderSequence(root)
+    write_sequence(root, rng, depth=False)
+    import cv2
+
+    cv2.imwrite(str(root / "cam0" / "rgb" / "000002.png"), np.zeros((5, 5, 3), np.uint8))
+    with pytest.raises(InputError, match=r"cam0/rgb/000002.png: expected image size 24x16, got 5x5"):
+        FolderSequence(root)[2]
+    (root / "cam0" / "rgb" / "000001.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match="could not read image"):
+        FolderSequence(root)[1]
+    (root / "timestamps.txt").write_text("0.0\n0.2\n0.1\n")
+    with pytest.raises(InputError, match=r"timestamps.txt: line 3: timestamps must increase"):
+        FolderSequence(root)
+
+
+def test_unrecognized_and_empty_folders(tmp_path):
+    with pytest.raises(InputError, match="data folder is empty"):
+        open_sequence(tmp_path)
+    (tmp_path / "x.txt").write_text("hi")
+    with pytest.raises(InputError, match="unrecognized data folder"):
+        open_sequence(tmp_path)
+    with pytest.raises(InputError, match="data folder not found"):
+        open_sequence(tmp_path / "missing")
+
+
+def test_tum_trajectory_round_trip_and_errors(tmp_path):
+    rng = np.random.default_rng(2)
+    traj = random_trajectory(rng, 5)
+    write_tum(tmp_path / "t.txt", traj)
+    back = read_tum(tmp_path / "t.txt")
+    np.testing.assert_allclose(back.timestamps, traj.timestamps)
+    np.testing.assert_allclose(back.poses, traj.poses, atol=1e-8)
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0 1 2 3 0 0 0 1\n1 1 2 nan 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"bad.txt: line 2: contains NaN"):
+        read_tum(bad)
+    bad.write_text("0 1 2 3 0 0 1\n")
+    with pytest.raises(InputError, match=r"line 1: expected 8 numbers"):
+        read_tum(bad)
+    bad.write_text("# only a comment\n")
+    with pytest.raises(InputError, match="expected at least 2 poses, got 0"):
+        read_tum(bad, min_poses=2)
