@@ -90,3 +90,38 @@ def yaw_pitch_roll(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndar
     Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     return Rz @ Ry @ Rx
+
+
+def matrix_to_transform7(T) -> np.ndarray:
+    """4x4 poses [..., 4, 4] -> Warp ``wp.transform`` layout [..., 7]: (px py pz qx qy qz qw)."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.concatenate([T[..., :3, 3], matrix_to_quat(T[..., :3, :3])], axis=-1)
+
+
+def transform7_to_matrix(t) -> np.ndarray:
+    """Warp ``wp.transform`` layout [..., 7] -> 4x4 poses [..., 4, 4]."""
+    t = np.asarray(t, dtype=np.float64)
+    return pose(t[..., :3], t[..., 3:])
+
+
+def se3_exp(xi) -> np.ndarray:
+    """``Exp(xi)`` as a 4x4 matrix for ``xi = (rho, phi)`` [..., 6] (DESIGN.md convention)."""
+    xi = np.asarray(xi, dtype=np.float64)
+    rho, phi = xi[..., :3], xi[..., 3:]
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = np.zeros(xi.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -phi[..., 2], phi[..., 1], -phi[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    small = theta < 1e-8
+    t2 = np.where(small, 1.0, theta * theta)
+    A = np.where(small, 1.0, np.sin(theta) / np.where(small, 1.0, theta))
+    B = np.where(small, 0.5, (1 - np.cos(theta)) / t2)
+    Cc = np.where(small, 1.0 / 6.0, (theta - np.sin(theta)) / (t2 * np.where(small, 1.0, theta)))
+    I = np.eye(3)
+    R = I + A * K + B * (K @ K)
+    V = I + B * K + Cc * (K @ K)
+    T = np.zeros(xi.shape[:-1] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = (V @ rho[..., None])[..., 0]
+    T[..., 3, 3] = 1.0
+    return T

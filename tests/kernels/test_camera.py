@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from camera_eval import eval_camera
-from conftest import devices
+from warp_devices import devices
 from mcgs_warp.kernels import make_camera, reference
 from scenes import cameras
 

@@ -10,7 +10,7 @@ import pytest
 import warp as wp
 from scipy.linalg import expm
 
-from conftest import devices
+from warp_devices import devices
 from mcgs_warp.kernels import Camera, Gaussians, Views, reference, render, render_backward
 from mcgs_warp.kernels.projection import project_gaussians_backward_kernel, project_gaussians_kernel
 from mcgs_warp.kernels.se3 import vec6

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from conftest import devices
+from warp_devices import devices
 from mcgs_warp.kernels import Gaussians, Views, bin_tiles, make_camera, project, reference, render
 from scenes import cameras, random_pose, random_scene
 

@@ -6,7 +6,7 @@ import warp as wp
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from conftest import devices
+from warp_devices import devices
 from mcgs_warp.kernels.se3 import mat66, se3_adjoint, se3_compose, se3_exp, se3_inverse, se3_log, se3_retract, vec6
 
 

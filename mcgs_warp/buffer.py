@@ -1,0 +1,97 @@
+"""The keyframe buffer: the one place holding what tracking and mapping share.
+
+Per keyframe: timestamp, source frame index, full-resolution images (host, for flow
+and mapping), the rig pose ``T_w_b`` and, per camera, inverse depth on the reduced
+grid (Warp arrays, on the buffer's device); per camera also the depth prior (sensor
+or monocular depth, m, 0 = none) and its JDSA scale grid (host arrays; the scaled
+prior ``depth_prior * bilinear(scales)`` is derived when needed). As in DROID-SLAM's
+``DepthVideo`` there are no copies of poses elsewhere: stages read and write these.
+
+Reduced grid: pixel ``(u', v')`` of a camera at ``stride`` s is full-resolution
+pixel ``(s u' + s/2, s v' + s/2)`` (integer for even s), so samples of full-res
+images, depths and flow fields are exact; see :func:`reduced_camera`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .geometry import matrix_to_transform7, transform7_to_matrix
+from .rig import CameraSpec, Rig
+
+
+def reduced_camera(spec: CameraSpec, stride: int) -> CameraSpec:
+    """The camera seen on the reduced grid (same model and distortion, scaled intrinsics)."""
+    from .kernels.camera import equirectangular_intrinsics
+
+    fx, fy, cx, cy = spec.intrinsics if spec.intrinsics is not None else equirectangular_intrinsics(spec.width, spec.height)
+    o = stride // 2
+    return CameraSpec(
+        spec.name, spec.model, spec.width // stride, spec.height // stride,
+        (fx / stride, fy / stride, (cx - o) / stride, (cy - o) / stride), spec.distortion, spec.T_b_c, spec.time_offset,
+    )  # fmt: skip
+
+
+def grid_pixels(spec: CameraSpec, stride: int) -> np.ndarray:
+    """Full-resolution pixel coordinates [h,w,2] (u, v) of the reduced grid."""
+    h, w = spec.height // stride, spec.width // stride
+    o = stride // 2
+    v, u = np.mgrid[0:h, 0:w]
+    return np.stack([u * stride + o, v * stride + o], -1).astype(np.float64)
+
+
+class KeyframeBuffer:
+    def __init__(self, rig: Rig, stride: int = 8, capacity: int = 64, scale_grid=(4, 6), device=None):
+        from .kernels import Camera
+        from .kernels.ba import grid_rays_kernel
+
+        self.rig = rig
+        self.stride = stride
+        self.capacity = capacity
+        self.device = wp.get_device(device)
+        self.reduced = [reduced_camera(c, stride) for c in rig.cameras]
+        self.h = max(c.height for c in self.reduced)
+        self.w = max(c.width for c in self.reduced)
+        C = len(rig)
+        self.cameras = wp.array([c.warp_camera() for c in self.reduced], dtype=Camera, device=self.device)
+        self.T_b_c = wp.array(matrix_to_transform7(np.stack([c.T_b_c for c in rig.cameras])).astype(np.float32), dtype=wp.transform, device=self.device)
+        self.rays = wp.zeros((C, self.h, self.w), dtype=wp.vec3, device=self.device)
+        wp.launch(grid_rays_kernel, dim=(C, self.h, self.w), inputs=[self.cameras], outputs=[self.rays], device=self.device)
+        self.poses = wp.zeros(capacity, dtype=wp.transform, device=self.device)  # T_w_b
+        self.disp = wp.zeros((capacity, C, self.h, self.w), dtype=float, device=self.device)
+        self.depth_prior = np.zeros((capacity, C, self.h, self.w), dtype=np.float32)  # m, 0 = none
+        self.scales = np.ones((capacity, C) + tuple(scale_grid))  # JDSA scale grids
+        self.timestamps: list[float] = []
+        self.frame_index: list[int] = []
+        self.images: list[list[np.ndarray]] = []
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def add(self, frame_index: int, timestamp: float, images, T_w_b, disp, depth_prior=None) -> int:
+        """Append a keyframe: ``disp`` [C,h,w] inverse depth (1/m), ``depth_prior`` [C,h,w] (m, 0 = none)."""
+        k = len(self)
+        if k >= self.capacity:
+            raise RuntimeError(f"keyframe buffer full ({self.capacity} keyframes)")
+        self.timestamps.append(float(timestamp))
+        self.frame_index.append(int(frame_index))
+        self.images.append(list(images))
+        self.set_poses(np.asarray(T_w_b)[None], start=k)
+        self.disp[k].assign(np.asarray(disp, dtype=np.float32))
+        if depth_prior is not None:
+            self.depth_prior[k] = depth_prior
+        return k
+
+    def get_poses(self) -> np.ndarray:
+        """Rig poses ``T_w_b`` [K,4,4] of the keyframes."""
+        return transform7_to_matrix(self.poses.numpy()[: len(self)])
+
+    def set_poses(self, T_w_b: np.ndarray, start: int = 0) -> None:
+        t = matrix_to_transform7(np.asarray(T_w_b)).astype(np.float32)
+        wp.copy(self.poses, wp.array(t, dtype=wp.transform, device=self.device), dest_offset=start, count=len(t))
+
+    def depth(self, k: int) -> np.ndarray:
+        """Depth [C,h,w] (m, 0 where unknown) of keyframe ``k``."""
+        d = self.disp.numpy()[k]
+        return np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)

@@ -1,0 +1,1 @@
+"""Front end: correspondences (flow), depth priors and keyframe selection."""
