@@ -88,3 +88,8 @@ def build_edges(
         if cross_view:
             edges.extend((i, a, i, b, CROSS_VIEW) for a, b in pairs)
     return np.array(edges, dtype=np.int32).reshape(-1, 5)
+
+
+def sliding_window(n_keyframes: int, size: int) -> list[int]:
+    """The last ``size`` keyframes (the online loop's MCBA window); its first is the gauge."""
+    return list(range(max(0, n_keyframes - size), n_keyframes))
