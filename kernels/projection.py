@@ -9,6 +9,10 @@ Forward (3DGS reference conventions, DESIGN.md "Gaussians and splatting"):
 * ``Sigma = R S S^T R^T`` from the normalized quaternion ``(x, y, z, w)`` and
   ``S = diag(exp(log_scale))``; ``Sigma' = J W Sigma W^T J^T + 0.3 I`` with
   ``J`` the camera model's 2x3 Jacobian at ``p_c`` and ``W = R_c_w``.
+* Culled when the 2D mean lies more than one image size outside the image
+  (``u`` outside ``[-W, 2W]`` or ``v`` outside ``[-H, 2H]``): such a splat can only
+  reach the image with a huge, badly approximated footprint (gsplat clamps the
+  Jacobian for the same reason), and its covariance overflows float32 gradients.
 * Outputs the 2D mean (pixels), the conic ``(a, b, c)`` of ``inv(Sigma')``, the
   Gaussian's depth (``z`` or ray length), and its opacity ``sigmoid(logit)``.
   Gaussians with opacity below 1/255 can touch no pixel and are culled here.
@@ -81,6 +85,12 @@ def project_gaussians_kernel(
     if o < ALPHA_MIN:
         visible[flat] = 0
         return
+    uv = camera_project(cam, pc)
+    w = float(cam.width)
+    h = float(cam.height)
+    if not (uv[0] >= -w and uv[0] <= 2.0 * w and uv[1] >= -h and uv[1] <= 2.0 * h):
+        visible[flat] = 0
+        return
     Rg = quat_to_rotation(quats[i])
     s = log_scales[i]
     Ms = Rg * wp.diag(wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2])))
@@ -91,10 +101,10 @@ def project_gaussians_kernel(
     b = S2[0, 1]
     cc = S2[1, 1] + COV2D_BLUR
     det = a * cc - b * b
-    if det <= 0.0:
+    if not (det > 0.0 and det < 1.0e30):  # also rejects NaN
         visible[flat] = 0
         return
-    mean2d[flat] = camera_project(cam, pc)
+    mean2d[flat] = uv
     conic[flat] = wp.vec3(cc / det, -b / det, a / det)
     depth[flat] = camera_depth(cam, pc)
     opacity[flat] = o

@@ -122,10 +122,13 @@ def project_gaussians(means, quats, log_scales, opacity_logits, cam, T_w_c, near
     b = S2[:, 0, 1]
     c = S2[:, 1, 1] + COV2D_BLUR
     det = a * c - b * b
-    visible &= det > 0
+    uv = project(cam, safe)
+    W_, H_ = cam.width, cam.height
+    visible &= (uv[:, 0] >= -W_) & (uv[:, 0] <= 2 * W_) & (uv[:, 1] >= -H_) & (uv[:, 1] <= 2 * H_)
+    visible &= (det > 0) & (det < 1e30)
     det = np.where(visible, det, 1.0)
     return {
-        "mean2d": project(cam, safe),
+        "mean2d": uv,
         "conic": np.stack([c / det, -b / det, a / det], axis=-1),
         "depth": depth(cam, safe),
         "opacity": opacity,

@@ -134,3 +134,20 @@ def test_cpu_worker_count_does_not_change_results(monkeypatch):
     np.testing.assert_array_equal(results[0][0], results[1][0])
     for a, b in zip(results[0][1:], results[1][1:]):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * np.abs(a).max())
+
+
+def test_splats_far_outside_the_image_are_culled_with_finite_gradients():
+    """A Gaussian 10 cm in front of the camera plane but 1.5 m to the side projects
+    millions of pixels away; it must be culled, not overflow the backward pass."""
+    from mcgs_warp.kernels import render_backward
+
+    cam = cameras()["pinhole"]
+    means = np.array([[-1.5, 0.2, 0.1], [0.0, 0.0, 2.0]])
+    scene = (means, np.tile([0, 0, 0, 1.0], (2, 1)), np.log(np.full((2, 3), 0.05)), np.full(2, 2.0), np.ones((2, 3)))
+    g, v = Gaussians.from_numpy(*scene), Views.create([cam], np.eye(4)[None])
+    out = render(g, v)
+    assert out.projection.visible.numpy().tolist() == [0, 1]
+    grads = render_backward(g, v, out, grad_color=np.ones((1, cam.height, cam.width, 3)), grad_depth=np.ones((1, cam.height, cam.width)))
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        assert np.isfinite(getattr(grads, name).numpy()).all()
+    assert np.abs(grads.means.numpy()[1]).sum() > 0

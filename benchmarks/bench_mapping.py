@@ -1,0 +1,66 @@
+"""Mapping benchmark: iterations per second and memory for 3 cameras x 10 keyframes.
+
+Builds a map from the built-in synthetic sequence (320x240, keyframes every 2nd
+frame, Gaussians from the true depth every 4th pixel), then times mapping
+iterations (one keyframe = 3 views per iteration), split into render, loss
+(host: L1 + SSIM + depth), backward and optimizer (Adam + densification
+statistics). Prints medians over ``--iterations`` after a warm-up.
+
+    python benchmarks/bench_mapping.py [--device cuda:0] [--keyframes 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "ba"))
+
+from problems import Problem  # noqa: E402
+
+from mcgs_warp.data.synthetic import generate  # noqa: E402
+from mcgs_warp.mapping.mapper import Mapper, MappingConfig  # noqa: E402
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--keyframes", type=int, default=10)
+    parser.add_argument("--iterations", type=int, default=30)
+    args = parser.parse_args()
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    wp.set_device(args.device or wp.get_preferred_device())
+    with tempfile.TemporaryDirectory() as tmp:
+        seq = generate(Path(tmp) / "seq", n_cameras=3, n_frames=2 * args.keyframes, seed=0, progress=False)
+        frames = list(range(0, 2 * args.keyframes, 2))
+        P = Problem(seq, frames, cross_view=False)
+        m = Mapper(P.buf, config=MappingConfig(densify_every=0))
+        for k, f in enumerate(frames):
+            m.add_keyframe(k, seq[f].depths)
+    m.optimize(3)  # warm-up: kernel compilation
+    rows = []
+    for _ in range(args.iterations):
+        before = dict(m.seconds)
+        m.step()
+        rows.append([m.seconds[k] - before[k] for k in ("render", "loss", "backward", "optimizer")])
+    r = np.median(np.array(rows), axis=0)
+    n = len(m.map)
+    param_mb = n * (3 + 4 + 3 + 1 + 3) * 4 / 2**20
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"device: {wp.get_device()}; {args.keyframes} keyframes x 3 cameras at 320x240; {n} Gaussians")
+    print(f"median of {args.iterations} iterations (one keyframe, 3 views each), seconds")
+    print(f"{'render':>9} {'loss':>9} {'backward':>9} {'optimizer':>9} {'total':>9} {'it/s':>7}")
+    print(f"{r[0]:>9.4f} {r[1]:>9.4f} {r[2]:>9.4f} {r[3]:>9.4f} {r.sum():>9.4f} {1 / r.sum():>7.2f}")
+    print(f"memory: parameters {param_mb:.1f} MB, with Adam moments {3 * param_mb:.1f} MB; peak process RSS {rss_mb:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Gaussian mapping (paper §III-B): the map, its losses, optimizer, densification, refinement."""
