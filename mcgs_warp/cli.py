@@ -33,6 +33,40 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--frames", type=int, default=40, help="number of frames (default 40, at 10 Hz)")
     synth.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     synth.set_defaults(func=cmd_synth)
+
+    demo = sub.add_parser(
+        "demo",
+        help="generate the synthetic 3-camera sequence and run the whole system on it",
+        description="Write the built-in synthetic sequence to OUT/data and run SLAM on it with "
+        "configs/synthetic.yaml; results go to OUT/run.",
+    )
+    demo.add_argument("--out", required=True, help="output folder")
+    demo.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
+    demo.add_argument("--cameras", type=int, default=3, help="number of rig cameras (default 3)")
+    demo.set_defaults(func=cmd_demo)
+
+    run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC or TUM RGB-D)")
+    run.add_argument("--data", required=True, help="sequence folder")
+    run.add_argument("--out", required=True, help="output folder")
+    run.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
+    run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
+    run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
+    run.set_defaults(func=cmd_run)
+
+    ev = sub.add_parser("eval", help="ATE (Sim(3)-aligned) and RPE of a trajectory against ground truth")
+    ev.add_argument("--est", required=True, help="estimated trajectory (TUM format)")
+    ev.add_argument("--gt", required=True, help="ground-truth trajectory (TUM format)")
+    ev.add_argument("--plot", default=None, help="write a top-view plot to this PNG")
+    ev.add_argument("--json", default=None, help="write the metrics to this JSON file")
+    ev.add_argument("--max-dt", type=float, default=0.02, help="timestamp association tolerance, s (default 0.02)")
+    ev.add_argument("--no-scale", action="store_true", help="align with SE(3) instead of Sim(3)")
+    ev.set_defaults(func=cmd_eval)
+
+    ex = sub.add_parser("export", help="export a run's map to USD and/or 3DGS PLY")
+    ex.add_argument("--run", required=True, help="run folder (holds map.ply, rig.yaml, keyframes.txt)")
+    ex.add_argument("--usd", default=None, help="USD file to write (.usdc or .usda)")
+    ex.add_argument("--ply", default=None, help="PLY file to write")
+    ex.set_defaults(func=cmd_export)
     return parser
 
 
@@ -41,6 +75,97 @@ def cmd_synth(args) -> int:
 
     seq = generate(args.out, n_cameras=args.cameras, n_frames=args.frames, seed=args.seed, device=args.device)
     print(f"wrote {len(seq)} frames x {len(seq.rig)} cameras to {args.out}")
+    return 0
+
+
+def _print_metrics(metrics: dict) -> None:
+    for key in ("ate_rmse_m", "ate_percent_of_path", "path_length_m", "psnr_db", "ssim", "depth_l1_m", "n_gaussians", "n_keyframes", "seconds_total"):
+        if metrics.get(key) is not None:
+            v = metrics[key]
+            print(f"  {key:<22} {v:.4f}" if isinstance(v, float) else f"  {key:<22} {v}")
+
+
+def cmd_demo(args) -> int:
+    from pathlib import Path
+
+    from .data.synthetic import generate
+    from .system.config import packaged_config
+    from .system.run import run_sequence
+
+    out = Path(args.out)
+    generate(out / "data", n_cameras=args.cameras, n_frames=args.frames, seed=0, device=args.device)
+    metrics = run_sequence(out / "data", out / "run", packaged_config("synthetic.yaml"), device=args.device)
+    print(f"demo finished; outputs in {out / 'run'}")
+    _print_metrics(metrics)
+    return 0
+
+
+def parse_cameras(text):
+    from .errors import InputError
+
+    if text is None:
+        return None
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(None, "--cameras", f"expected comma-separated camera indices like 0,2, got {text!r}") from None
+
+
+def cmd_run(args) -> int:
+    from .system.run import run_sequence
+
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), jdsa=False if args.no_jdsa else None, device=args.device)
+    print(f"run finished; outputs in {args.out}")
+    _print_metrics(metrics)
+    return 0
+
+
+def cmd_eval(args) -> int:
+    import json
+
+    from .data.trajectory import read_tum
+    from .eval.plots import plot_trajectory
+    from .eval.trajectory import evaluate
+    from .io import atomic_write
+
+    est = read_tum(args.est, min_poses=3)
+    gt = read_tum(args.gt, min_poses=3)
+    metrics, aligned, matched_gt = evaluate(est, gt, max_dt=args.max_dt, with_scale=not args.no_scale)
+    d = metrics.to_dict()
+    for k, v in d.items():
+        print(f"{k:<16} {v:.6f}" if isinstance(v, float) else f"{k:<16} {v}")
+    if args.json:
+        with atomic_write(args.json) as f:
+            json.dump(d, f, indent=2)
+    if args.plot:
+        plot_trajectory(args.plot, aligned[:, :2], matched_gt[:, :2], title=f"ATE {metrics.ate_rmse_m * 100:.2f} cm")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from pathlib import Path
+
+    from .data.trajectory import read_tum
+    from .errors import InputError
+    from .io.ply import read_ply, write_ply
+    from .io.usd import write_usd
+    from .rig import load_rig
+
+    run = Path(args.run)
+    if not (args.usd or args.ply):
+        raise InputError(None, "--usd/--ply", "name at least one output file")
+    params = read_ply(run / "map.ply")
+    cams = []
+    if (run / "rig.yaml").is_file() and (run / "keyframes.txt").is_file():
+        rig = load_rig(run / "rig.yaml")
+        kfs = read_tum(run / "keyframes.txt")
+        cams = [(f"kf{k:03d}_{spec.name}", T @ spec.T_b_c, spec) for k, T in enumerate(kfs.poses) for spec in rig.cameras]
+    if args.usd:
+        write_usd(args.usd, params, cams)
+        print(f"wrote {args.usd} ({len(params['means'])} Gaussians, {len(cams)} cameras)")
+    if args.ply:
+        write_ply(args.ply, params)
+        print(f"wrote {args.ply}")
     return 0
 
 

@@ -61,6 +61,25 @@ class Sequence:
         raise NotImplementedError
 
 
+class CameraSubset(Sequence):
+    """A sequence restricted to some of its rig's cameras (``--cameras 0,2``)."""
+
+    def __init__(self, seq: Sequence, cameras):
+        cameras = list(cameras)
+        for c in cameras:
+            if not 0 <= c < len(seq.rig):
+                raise InputError(None, "--cameras", f"camera index {c} out of range: the rig has {len(seq.rig)} cameras (0-{len(seq.rig) - 1})")
+        if len(set(cameras)) != len(cameras) or not cameras:
+            raise InputError(None, "--cameras", f"expected distinct camera indices, got {cameras}")
+        self.seq, self.cameras = seq, cameras
+        self.rig = seq.rig.subset(cameras)
+        self.timestamps, self.groundtruth, self.name = seq.timestamps, seq.groundtruth, seq.name
+
+    def load_frame(self, k: int) -> Frame:
+        f = self.seq[k]
+        return Frame(f.index, f.timestamp, [f.images[c] for c in self.cameras], [f.depths[c] for c in self.cameras])
+
+
 def read_timestamps(path) -> np.ndarray:
     """One timestamp per line (extra columns ignored), strictly increasing."""
     path = Path(path)

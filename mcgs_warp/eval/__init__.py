@@ -1,0 +1,1 @@
+"""Evaluation: trajectory error (ATE, RPE), image metrics, plots."""

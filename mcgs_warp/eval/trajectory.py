@@ -1,0 +1,83 @@
+"""Trajectory evaluation: timestamp association, Umeyama Sim(3) alignment, ATE and RPE.
+
+ATE (absolute trajectory error) is the RMSE of positions after aligning the estimate
+to the ground truth with the similarity transform that minimizes it (Umeyama 1991),
+as the TUM RGB-D benchmark tools and evo do. RPE is the RMSE of relative
+translation errors between poses ``delta`` apart (after the same alignment).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..data.trajectory import Trajectory
+from ..errors import InputError
+
+
+def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (est, gt) of nearest timestamps within ``max_dt`` seconds (one-to-one)."""
+    j = np.clip(np.searchsorted(t_gt, t_est), 1, max(len(t_gt) - 1, 1)) if len(t_gt) > 1 else np.zeros(len(t_est), int)
+    if len(t_gt) > 1:
+        j = np.where(np.abs(t_gt[j - 1] - t_est) <= np.abs(t_gt[j] - t_est), j - 1, j)
+    ok = np.abs(t_gt[j] - t_est) <= max_dt
+    i = np.nonzero(ok)[0]
+    j = j[ok]
+    _, first = np.unique(j, return_index=True)  # one estimate per ground-truth pose
+    return i[first], j[first]
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True):
+    """``(s, R, t)`` minimizing ``sum |dst - (s R src + t)|^2`` for points [N,3]."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    var = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var) if with_scale and var > 0 else 1.0
+    return s, R, mu_d - s * R @ mu_s
+
+
+@dataclass
+class TrajectoryMetrics:
+    ate_rmse_m: float
+    ate_mean_m: float
+    ate_max_m: float
+    rpe_rmse_m: float
+    scale: float
+    path_length_m: float
+    n_matched: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def evaluate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, with_scale: bool = True, rpe_delta: int = 1):
+    """ATE/RPE of ``est`` against ``gt``; returns metrics and the aligned estimate positions."""
+    i, j = associate(est.timestamps, gt.timestamps, max_dt)
+    if len(i) < 3:
+        raise InputError(None, None, f"only {len(i)} estimated poses match ground-truth timestamps within {max_dt} s; need at least 3")
+    P, G = est.positions[i], gt.positions[j]
+    s, R, t = umeyama(P, G, with_scale)
+    A = s * P @ R.T + t
+    err = np.linalg.norm(A - G, axis=1)
+    rel = []
+    for a in range(len(i) - rpe_delta):
+        d_est = A[a + rpe_delta] - A[a]
+        d_gt = G[a + rpe_delta] - G[a]
+        rel.append(np.linalg.norm(d_est - d_gt))
+    metrics = TrajectoryMetrics(
+        ate_rmse_m=float(np.sqrt(np.mean(err**2))),
+        ate_mean_m=float(err.mean()),
+        ate_max_m=float(err.max()),
+        rpe_rmse_m=float(np.sqrt(np.mean(np.square(rel)))) if rel else 0.0,
+        scale=float(s),
+        path_length_m=float(np.linalg.norm(np.diff(G, axis=0), axis=1).sum()),
+        n_matched=int(len(i)),
+    )
+    return metrics, A, G

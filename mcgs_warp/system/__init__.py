@@ -1,0 +1,1 @@
+"""The SLAM system: run configuration, the online loop, offline refinement, outputs."""

@@ -1,0 +1,118 @@
+"""What a run leaves in its folder (every file written atomically):
+
+* ``trajectory.txt`` (rig body ``T_w_b``, TUM) and ``trajectory_<camera>.txt`` (``T_w_c``)
+* ``map.usdc`` (``UsdVol.ParticleField3DGaussianSplat`` + keyframe cameras), ``map.ply`` (3DGS)
+* ``renders/keyframe_<k>_<camera>.png``: input | render | depth, for a few keyframes
+* ``metrics.json``: ATE (Sim(3)-aligned) and path length when ground truth exists, PSNR,
+  SSIM and depth L1 over the keyframe views, counts and timings
+* ``plots/trajectory.png`` (top view, estimate vs ground truth), ``plots/mapping.png``
+  (loss and PSNR per mapping iteration)
+* ``config.yaml``: the resolved run configuration; ``rig.yaml`` and ``keyframes.txt``
+  (keyframe rig poses, TUM) so that ``mcgs-slam export`` can rebuild the USD cameras
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..data.trajectory import Trajectory, write_tum
+from ..eval.metrics import psnr, ssim
+from ..eval.plots import plot_curve, plot_trajectory
+from ..eval.trajectory import evaluate
+from ..io import atomic_write, write_image
+from ..io.ply import write_ply
+from ..io.usd import write_usd
+from ..kernels import Views, render
+from ..rig import save_rig
+
+
+def depth_colormap(depth: np.ndarray, vmax: float) -> np.ndarray:
+    import cv2
+
+    d = np.clip(depth / max(vmax, 1e-6), 0, 1)
+    rgb = cv2.applyColorMap((255 * (1 - d)).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1] / 255.0
+    return np.where(depth[..., None] > 0, rgb, 0.0)
+
+
+def keyframe_views(slam):
+    """Render every keyframe's views at their final poses, exposure applied:
+    yields (k, c, rendered colour, rendered depth, input image, frame index)."""
+    m, buf = slam.mapper, slam.buf
+    poses = buf.get_poses()
+    for k in range(len(buf)):
+        out = render(m.map.gaussians, Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
+        col, dep = out.color.numpy(), out.depth.numpy()
+        for c, spec in enumerate(buf.rig.cameras):
+            a, b = np.exp(m.exposure[k, c, 0]), m.exposure[k, c, 1]
+            yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
+
+
+def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
+    out = Path(out_dir)
+    seq, buf, rig = slam.seq, slam.buf, slam.seq.rig
+    traj = result.trajectory
+    write_tum(out / "trajectory.txt", traj)
+    T_w_c = rig.camera_poses(traj.poses)
+    for c, spec in enumerate(rig.cameras):
+        write_tum(out / f"trajectory_{spec.name}.txt", Trajectory(traj.timestamps, T_w_c[:, c]))
+
+    params = slam.mapper.map.to_numpy()
+    kf_poses = buf.get_poses()
+    cams = [(f"kf{k:03d}_{spec.name}", kf_poses[k] @ spec.T_b_c, spec) for k in range(len(buf)) for spec in rig.cameras]
+    write_usd(out / "map.usdc", params, cams)
+    write_ply(out / "map.ply", params)
+    save_rig(rig, out / "rig.yaml")
+    write_tum(out / "keyframes.txt", Trajectory(np.array(buf.timestamps), kf_poses))
+
+    # Image metrics over every keyframe view; a few renders beside their inputs.
+    n_render = slam.cfg.output.renders
+    show = set(np.linspace(0, len(buf) - 1, min(n_render, len(buf))).astype(int).tolist()) if n_render else set()
+    psnrs, ssims, depth_err = [], [], []
+    frames: dict = {}
+    for k, c, col, dep, img, fidx in keyframe_views(slam):
+        psnrs.append(psnr(col, img))
+        ssims.append(ssim(col, img, with_grad=False)[0])
+        if fidx not in frames:
+            frames = {fidx: seq[fidx]}  # load each keyframe's frame once
+        sensor = frames[fidx].depths[c]
+        if sensor is not None:
+            ok = (sensor > 0) & (dep > 0)
+            if ok.any():
+                depth_err.append(float(np.abs(dep[ok] - sensor[ok]).mean()))
+        if k in show:
+            vmax = float(np.percentile(sensor[sensor > 0], 95)) if sensor is not None and (sensor > 0).any() else float(np.percentile(dep[dep > 0], 95)) if (dep > 0).any() else 1.0
+            write_image(out / "renders" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", np.concatenate([img, col, depth_colormap(dep, vmax)], axis=1))
+
+    metrics = {
+        "ate_rmse_m": None,
+        "path_length_m": float(np.linalg.norm(np.diff(traj.positions, axis=0), axis=1).sum()),
+        "psnr_db": float(np.mean(psnrs)),
+        "ssim": float(np.mean(ssims)),
+        "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
+        "n_gaussians": len(slam.mapper.map),
+        "n_keyframes": len(buf),
+        "n_frames": len(seq),
+        "seconds_total": float(seconds_total),
+        "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
+    }
+    gt_xy = None
+    aligned = traj.positions
+    if seq.groundtruth is not None:
+        tm, aligned, gt = evaluate(traj, seq.groundtruth)
+        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12)})
+        gt_xy = gt[:, :2]
+    with atomic_write(out / "metrics.json") as f:
+        json.dump(metrics, f, indent=2)
+    title = f"ATE {metrics['ate_rmse_m'] * 100:.2f} cm" if metrics["ate_rmse_m"] is not None else "estimate"
+    plot_trajectory(out / "plots" / "trajectory.png", aligned[:, :2], gt_xy, title=title)
+    if result.mapping_curve:
+        it, loss, ps = (np.array(v, float) for v in zip(*result.mapping_curve))
+        plot_curve(out / "plots" / "mapping.png", it, {"loss x 100": 100 * loss, "PSNR dB": ps}, "iteration", "", title="mapping")
+    import yaml
+
+    with atomic_write(out / "config.yaml") as f:
+        yaml.safe_dump(slam.cfg.to_dict(), f, sort_keys=False)
+    return metrics
