@@ -79,7 +79,7 @@ def cmd_synth(args) -> int:
 
 
 def _print_metrics(metrics: dict) -> None:
-    for key in ("ate_rmse_m", "ate_percent_of_path", "path_length_m", "psnr_db", "ssim", "depth_l1_m", "n_gaussians", "n_keyframes", "seconds_total"):
+    for key in ("ate_rmse_m", "ate_percent_of_path", "ate_se3_rmse_m", "sim3_scale", "path_length_m", "psnr_db", "ssim", "depth_l1_m", "n_gaussians", "n_keyframes", "seconds_total"):
         if metrics.get(key) is not None:
             v = metrics[key]
             print(f"  {key:<22} {v:.4f}" if isinstance(v, float) else f"  {key:<22} {v}")

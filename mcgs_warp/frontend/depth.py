@@ -5,11 +5,13 @@ A :class:`DepthPrior` gives, for a frame, one full-resolution depth map per came
 prior sampled on the reduced grid (:func:`grid_depth`) both to initialize inverse
 depth and, JDSA-scaled, as a soft prior.
 
-* :class:`SensorDepth` — the dataset's depth (RGB-D, synthetic): metric and exact.
+* :class:`SensorDepth` — the dataset's depth (RGB-D, synthetic): metric and exact, so
+  JDSA leaves it unscaled.
 * :class:`ConstantDepth` — no depth sensor: a constant initial depth, as DROID-SLAM
   starts from; the scale then comes from cross-view edges (known baselines).
-* a monocular network (the paper's Metric3D) would be a third implementation; none
-  is bundled because nothing may download weights at run time.
+* a monocular network (the paper's Metric3D) would be a third implementation (metric,
+  not exact: JDSA rescales it); none is bundled because nothing may download weights
+  at run time.
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ from ..buffer import grid_pixels
 class DepthPrior:
     #: whether the prior is trusted as a soft constraint (else only an initial value)
     metric: bool = False
+    #: whether it is exact up to noise (sensor depth): then JDSA must not rescale it, or
+    #: the scale grids would follow MCBA's depths and free the metric scale
+    exact: bool = False
 
     def __call__(self, frame, rig) -> list:
         raise NotImplementedError
@@ -29,6 +34,7 @@ class DepthPrior:
 
 class SensorDepth(DepthPrior):
     metric = True
+    exact = True
 
     def __call__(self, frame, rig) -> list:
         return list(frame.depths)

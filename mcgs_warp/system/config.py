@@ -20,8 +20,8 @@ class TrackingConfig:
     keyframe_flow_px: float = 10.0
     temporal_radius: int = 2
     cross_view: bool = True
-    mcba_iterations: int = 4
-    huber_px: float = 1.0
+    mcba_iterations: int = 6
+    huber_px: float = 0.1
     prior_weight: float = 1.0
     jdsa: bool = True
     jdsa_rounds: int = 2

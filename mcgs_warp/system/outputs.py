@@ -102,7 +102,8 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     aligned = traj.positions
     if seq.groundtruth is not None:
         tm, aligned, gt = evaluate(traj, seq.groundtruth)
-        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12)})
+        se3, _, _ = evaluate(traj, seq.groundtruth, with_scale=False)
+        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m})
         gt_xy = gt[:, :2]
     with atomic_write(out / "metrics.json") as f:
         json.dump(metrics, f, indent=2)

@@ -2,7 +2,8 @@
 
 Per rig frame: keyframe test (mean DIS flow since the last keyframe); for a new
 keyframe: initial pose by constant velocity, depth from the prior, MCBA (+ JDSA)
-over the sliding window with temporal and cross-view edges, anchored Gaussians
+over the sliding window with temporal and cross-view edges (JDSA only for inexact,
+monocular-style priors: rescaling exact sensor depth would free the metric scale), anchored Gaussians
 follow the moved keyframes, new Gaussians where the map is empty, and mapping
 iterations. Non-keyframe poses are interpolated between keyframes. After the last
 frame: global MCBA over all keyframes, then joint refinement of map, poses and
@@ -96,7 +97,7 @@ class SLAM:
     def _solve(self, edges, keyframes):
         targets, weights = self.correspondences(edges)
         before = self.buf.get_poses()
-        if self.cfg.tracking.jdsa and self.prior.metric:
+        if self.cfg.tracking.jdsa and self.prior.metric and not self.prior.exact:
             mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=self.cfg.tracking.jdsa_rounds)
         else:
             self.mcba.solve(edges, targets, weights, keyframes=keyframes)
