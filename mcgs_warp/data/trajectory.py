@@ -44,9 +44,11 @@ def read_tum(path, min_poses: int = 1) -> Trajectory:
             raise InputError(path, f"line {lineno}", f"expected numbers, got {line!r}") from None
         if not np.all(np.isfinite(vals)):
             raise InputError(path, f"line {lineno}", "contains NaN or Inf")
-        qn = np.linalg.norm(vals[4:])
-        if qn < 1e-6:
+        q = np.asarray(vals[4:])
+        big = np.abs(q).max()
+        if big == 0 or np.linalg.norm(q / big) * big < 1e-6:
             raise InputError(path, f"line {lineno}", "quaternion has zero norm")
+        vals[4:] = (q / big).tolist()  # pre-scaled so its norm cannot overflow
         if stamps and vals[0] <= stamps[-1]:
             raise InputError(path, f"line {lineno}", f"timestamps must increase, got {vals[0]} after {stamps[-1]}")
         stamps.append(vals[0])

@@ -15,6 +15,7 @@ image uncovered (rendered alpha below ``new_alpha``).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,8 @@ from ..kernels import Views, render, render_backward
 from .gaussian_map import GaussianMap
 from .losses import color_loss, depth_loss, psnr
 from .optimizer import Adam
+
+log = logging.getLogger("mcgs_warp.mapping")
 
 
 @dataclass
@@ -84,6 +87,7 @@ class Mapper:
         self._grad_count = np.zeros(0)
         self.history: list[StepResult] = []
         self.seconds = {"render": 0.0, "loss": 0.0, "backward": 0.0, "optimizer": 0.0}
+        self.rejected_steps = 0
 
     def _new_adam(self) -> Adam:
         c = self.cfg
@@ -168,6 +172,14 @@ class Mapper:
             wp.launch(isotropy_loss_kernel, dim=len(self.map), inputs=[g.log_scales, cfg.lambda_scale / len(self.map)], outputs=[loss_s, grads.log_scales], device=buf.device)
             total += float(loss_s.numpy()[0])
         t3 = time.perf_counter()
+        if grads is not None and not self._finite(total, grads):
+            # Numerical safety: a NaN/Inf loss or gradient never reaches the map or poses.
+            self.rejected_steps += 1
+            log.warning("mapping step %d on keyframe %d: non-finite loss or gradient, step rejected", self.iteration, k)
+            self.iteration += 1
+            result = StepResult(float("nan"), float("nan"), k)
+            self.history.append(result)
+            return result
         if train_map:
             self.adam.step(params, {name: getattr(grads, name) for name in params})
             # densification statistics: view-space gradient norm per Gaussian and view
@@ -190,6 +202,12 @@ class Mapper:
         result = StepResult(total, float(np.mean(psnrs)), k)
         self.history.append(result)
         return result
+
+    @staticmethod
+    def _finite(total: float, grads) -> bool:
+        if not np.isfinite(total):
+            return False
+        return all(np.isfinite(getattr(grads, n).numpy()).all() for n in ("means", "quats", "log_scales", "opacity_logits", "colors", "pose"))
 
     def _host_adam_step(self, key, value: np.ndarray, grad: np.ndarray, lr: float) -> np.ndarray:
         m, v, t = self._host_adam.get(key, (np.zeros_like(grad), np.zeros_like(grad), 0))
