@@ -51,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
     run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
     run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
+    run.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
     run.set_defaults(func=cmd_run)
 
     ev = sub.add_parser("eval", help="ATE (Sim(3)-aligned) and RPE of a trajectory against ground truth")
@@ -114,7 +115,7 @@ def parse_cameras(text):
 def cmd_run(args) -> int:
     from .system.run import run_sequence
 
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), jdsa=False if args.no_jdsa else None, device=args.device)
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), jdsa=False if args.no_jdsa else None, device=args.device, resume=args.resume)
     print(f"run finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0
@@ -189,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mcgs-slam {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"mcgs-slam {args.command}: interrupted", file=sys.stderr)
+        hint = " (continue with --resume)" if args.command == "run" else ""
+        print(f"mcgs-slam {args.command}: interrupted{hint}", file=sys.stderr)
         return 130
 
 

@@ -203,6 +203,35 @@ class Mapper:
         self.history.append(result)
         return result
 
+    # ----------------------------------------------------------------------------------
+    def state_arrays(self) -> dict:
+        """Everything that determines the next steps, as arrays (for checkpoints)."""
+        import json
+
+        out = {f"map.{k}": v for k, v in self.map.to_numpy().items()}
+        out.update({f"adam.{k}": v for k, v in self.adam.state_arrays().items()})
+        out["exposure"] = self.exposure.copy()
+        out["grad_accum"], out["grad_count"] = self._grad_accum.copy(), self._grad_count.copy()
+        out["history"] = np.array([(r.loss, r.psnr, r.keyframe) for r in self.history], np.float64).reshape(-1, 3)
+        host = {k: [m.tolist(), v.tolist(), t] for k, (m, v, t) in self._host_adam.items()}
+        out["json"] = np.array(json.dumps({"iteration": self.iteration, "rng": self.rng.bit_generator.state, "host_adam": host, "rejected": self.rejected_steps, "registered": sorted(self.depths)}))
+        return out
+
+    def load_state_arrays(self, a: dict, depths: dict) -> None:
+        import json
+
+        self.map.set_numpy({k[4:]: a[k] for k in a if k.startswith("map.")})
+        self.adam.load_state_arrays({k[5:]: a[k] for k in a if k.startswith("adam.")}, self.buf.device)
+        self.exposure[:] = a["exposure"]
+        self._grad_accum, self._grad_count = a["grad_accum"].copy(), a["grad_count"].copy()
+        self.history = [StepResult(float(l_), float(p_), int(k_)) for l_, p_, k_ in a["history"]]
+        meta = json.loads(str(a["json"]))
+        self.iteration = meta["iteration"]
+        self.rng.bit_generator.state = meta["rng"]
+        self._host_adam = {k: (np.array(m), np.array(v), t) for k, (m, v, t) in meta["host_adam"].items()}
+        self.rejected_steps = meta["rejected"]
+        self.depths = {k: depths[k] for k in meta["registered"]}
+
     @staticmethod
     def _finite(total: float, grads) -> bool:
         if not np.isfinite(total):

@@ -56,3 +56,21 @@ class Adam:
             t += 1
             self.state[name] = (m, v, t)
             wp.launch(adam_kernel, dim=pf.shape[0], inputs=[pf, gf, m, v, lr, b1, b2, self.eps, 1 - b1**t, 1 - b2**t], device=p.device)
+
+    def state_arrays(self) -> dict:
+        """Moments and step counts as NumPy arrays (for checkpoints)."""
+        out = {}
+        for name, (m, v, t) in self.state.items():
+            out[f"{name}.m"], out[f"{name}.v"], out[f"{name}.t"] = m.numpy().copy(), v.numpy().copy(), np.array(t)
+        return out
+
+    def load_state_arrays(self, arrays: dict, device) -> None:
+        self.state = {}
+        for key in arrays:
+            if key.endswith(".m"):
+                name = key[:-2]
+                self.state[name] = (
+                    wp.array(arrays[f"{name}.m"], dtype=float, device=device),
+                    wp.array(arrays[f"{name}.v"], dtype=float, device=device),
+                    int(arrays[f"{name}.t"]),
+                )

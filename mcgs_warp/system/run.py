@@ -12,8 +12,13 @@ from .outputs import write_outputs
 from .slam import SLAM, Progress
 
 
-def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, jdsa: bool | None = None, device=None, progress: bool = True) -> dict:
-    """Run SLAM on the sequence folder ``data`` and write everything to ``out``; returns the metrics."""
+CHECKPOINT = "checkpoint.npz"
+
+
+def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, jdsa: bool | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None) -> dict:
+    """Run SLAM on the sequence folder ``data`` and write everything to ``out``; returns the
+    metrics. The online state is checkpointed to ``out/checkpoint.npz`` after every
+    keyframe; ``resume`` continues an interrupted run from it."""
     t0 = time.perf_counter()
     cfg = config if isinstance(config, RunConfig) else load_run_config(config)
     if jdsa is not None:
@@ -23,5 +28,5 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
         seq = CameraSubset(seq, cameras)
     Path(out).mkdir(parents=True, exist_ok=True)
     slam = SLAM(seq, cfg, device=device, progress=Progress(progress))
-    result = slam.run()
+    result = slam.run(checkpoint=Path(out) / CHECKPOINT, resume=resume, stop_after_keyframes=stop_after_keyframes)
     return write_outputs(out, slam, result, time.perf_counter() - t0)

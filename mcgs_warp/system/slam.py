@@ -15,6 +15,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -135,11 +136,66 @@ class SLAM:
         return [cv2.resize(d[c, : s.height // self.buf.stride, : s.width // self.buf.stride], (s.width, s.height), interpolation=cv2.INTER_NEAREST) for c, s in enumerate(self.seq.rig.cameras)]
 
     # ----------------------------------------------------------------------------------
-    def run(self) -> RunResult:
+    def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
+        """Write the whole online state atomically (``path``: a .npz file)."""
+        import json
+
+        from ..io import atomic_write
+
+        buf, K = self.buf, len(self.buf)
+        arrays = {f"mapper.{k}": v for k, v in self.mapper.state_arrays().items()}
+        arrays.update(
+            poses=buf.poses.numpy()[:K].copy(),
+            disp=buf.disp.numpy()[:K].copy(),
+            depth_prior=buf.depth_prior[:K].copy(),
+            scales=buf.scales[:K].copy(),
+            timestamps=np.array(buf.timestamps),
+            frame_index=np.array(buf.frame_index, dtype=np.int64),
+            kf_frames=np.array(kf_frames, dtype=np.int64),
+            meta=np.array(json.dumps({"next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
+        )
+        with atomic_write(path, "wb") as f:
+            np.savez(f, **arrays)
+
+    def load_checkpoint(self, path) -> tuple[int, list]:
+        """Restore the state saved by :meth:`save_checkpoint`; returns (next frame, keyframe frames)."""
+        import json
+
+        import warp as wp
+
+        from ..errors import InputError
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                a = {k: z[k] for k in z.files}
+            meta = json.loads(str(a["meta"]))
+        except (OSError, ValueError, KeyError) as e:
+            raise InputError(path, None, f"unreadable checkpoint ({e})") from None
+        if meta["config"] != self.cfg.to_dict() or meta["n_frames"] != len(self.seq):
+            raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
+        buf = self.buf
+        for k, fi in enumerate(a["frame_index"]):
+            frame = self.seq[int(fi)]
+            buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k])
+        wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
+        buf.scales[: len(a["scales"])] = a["scales"]
+        depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
+        self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
+        self.seconds = meta["seconds"]
+        return int(meta["next_frame"]), [int(v) for v in a["kf_frames"]]
+
+    def run(self, checkpoint=None, resume: bool = False, stop_after_keyframes: int | None = None) -> RunResult:
+        """Process every frame, then refine. With ``checkpoint`` (a .npz path) the state is
+        saved after each keyframe; ``resume`` continues from it. ``stop_after_keyframes``
+        simulates an interruption (tests)."""
         n = len(self.seq)
-        kf_frames, last_images = [], None
+        kf_frames, last_images, start = [], None, 0
+        if resume and checkpoint is not None and Path(checkpoint).is_file():
+            start, kf_frames = self.load_checkpoint(checkpoint)
+            last_images = self.seq[kf_frames[-1]].images if kf_frames else None
+            self.progress("resumed", start, n, f"keyframes {len(kf_frames)}", force=True)
         mcfg = self.cfg.mapping
-        for idx in range(n):
+        for idx in range(start, n):
             frame = self.seq[idx]
             t0 = time.perf_counter()
             is_kf = last_images is None or idx == n - 1
@@ -159,6 +215,10 @@ class SLAM:
             t2 = time.perf_counter()
             self.seconds["tracking"] += t1 - t0
             self.seconds["mapping"] += t2 - t1
+            if checkpoint is not None:
+                self.save_checkpoint(checkpoint, idx + 1, kf_frames)
+            if stop_after_keyframes is not None and len(kf_frames) >= stop_after_keyframes:
+                raise KeyboardInterrupt(f"stopped after {len(kf_frames)} keyframes")
             psnr = self.mapper.history[-1].psnr if self.mapper.history else float("nan")
             self.progress("tracking", idx + 1, n, f"keyframes {len(kf_frames)}  gaussians {len(self.mapper.map)}  psnr {psnr:.1f} dB")
         self.progress.done()

@@ -1,0 +1,108 @@
+"""Bad input through the command line: one clear line, exit code 2, no traceback;
+and atomic writes that never leave a truncated file."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mcgs_warp.data import FolderWriter, Trajectory
+from mcgs_warp.geometry import pose
+from mcgs_warp.io import atomic_write
+from mcgs_warp.rig import CameraSpec, Rig
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "mcgs_warp", *map(str, args)], capture_output=True, text=True)
+
+
+def small_sequence(root, n=3):
+    rig = Rig([CameraSpec("a", "pinhole", 32, 24, (30.0, 30.0, 15.5, 11.5))])
+    w = FolderWriter(root, rig)
+    for k in range(n):
+        w.write_frame(k, [np.full((24, 32, 3), 0.5)])
+    w.finish(np.arange(n) * 0.1)
+    return root
+
+
+def break_rig(root):
+    (root / "rig.yaml").write_text("cameras:\n  - model: pinhole\n    resolution: [32, 24]\n    intrinsics: [30, 30, 15.5]\n")
+
+
+def break_image(root):
+    import cv2
+
+    cv2.imwrite(str(root / "cam0" / "rgb" / "000001.png"), np.zeros((5, 5, 3), np.uint8))
+
+
+def break_timestamps(root):
+    (root / "timestamps.txt").write_text("0.0\n0.2\n0.1\n")
+
+
+def drop_frame(root):
+    (root / "cam0" / "rgb" / "000002.png").unlink()
+
+
+@pytest.mark.parametrize(
+    "breaker, message",
+    [
+        (break_rig, "rig.yaml: cameras[0].intrinsics: expected 4 numbers, got 3"),
+        (break_image, "000001.png: expected image size 32x24, got 5x5"),
+        (break_timestamps, "timestamps.txt: line 3: timestamps must increase"),
+        (drop_frame, "000002.png: missing frame 2 of 3"),
+    ],
+)
+def test_run_on_broken_sequences(tmp_path, breaker, message):
+    root = small_sequence(tmp_path / "seq")
+    breaker(root)
+    res = cli("run", "--data", root, "--out", tmp_path / "out")
+    assert res.returncode == 2, res.stderr
+    assert message in res.stderr and "Traceback" not in res.stderr
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("mcgs-slam run: error: ") and message in last  # the error is one line
+
+
+def test_run_config_errors_and_camera_selection(tmp_path):
+    root = small_sequence(tmp_path / "seq")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("tracking:\n  windows: 4\n")
+    res = cli("run", "--data", root, "--out", tmp_path / "out", "--config", cfg)
+    assert res.returncode == 2 and "cfg.yaml: tracking.windows: unknown key" in res.stderr
+    cfg.write_text("mapping:\n  lr_means: -1\n")
+    res = cli("run", "--data", root, "--out", tmp_path / "out", "--config", cfg)
+    assert res.returncode == 2 and "mapping.lr_means: expected a non-negative number" in res.stderr
+    res = cli("run", "--data", root, "--out", tmp_path / "out", "--cameras", "0,3")
+    assert res.returncode == 2 and "--cameras: camera index 3 out of range" in res.stderr
+    res = cli("--debug", "run", "--data", tmp_path / "nowhere", "--out", tmp_path / "out")
+    assert res.returncode != 0 and "Traceback" in res.stderr  # --debug shows it
+
+
+def test_eval_on_bad_trajectories(tmp_path):
+    good = Trajectory(np.arange(5) * 0.1, pose(np.random.default_rng(0).normal(size=(5, 3)), np.tile([0, 0, 0, 1.0], (5, 1))))
+    from mcgs_warp.data import write_tum
+
+    write_tum(tmp_path / "gt.txt", good)
+    (tmp_path / "nan.txt").write_text("0 0 0 nan 0 0 0 1\n")
+    res = cli("eval", "--est", tmp_path / "nan.txt", "--gt", tmp_path / "gt.txt")
+    assert res.returncode == 2 and "nan.txt: line 1: contains NaN or Inf" in res.stderr
+    (tmp_path / "two.txt").write_text("0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n")
+    res = cli("eval", "--est", tmp_path / "two.txt", "--gt", tmp_path / "gt.txt")
+    assert res.returncode == 2 and "expected at least 3 poses, got 2" in res.stderr
+    (tmp_path / "far.txt").write_text("".join(f"{100 + k} 0 0 0 0 0 0 1\n" for k in range(4)))
+    res = cli("eval", "--est", tmp_path / "far.txt", "--gt", tmp_path / "gt.txt")
+    assert res.returncode == 2 and "match ground-truth timestamps" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
+    path = tmp_path / "metrics.json"
+    path.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(path) as f:
+            f.write("half of the new con")
+            raise RuntimeError("interrupted")
+    assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]  # no temporary left behind
+    with atomic_write(path) as f:
+        f.write("new")
+    assert path.read_text() == "new"
