@@ -2,8 +2,9 @@
 
 Each iteration picks a keyframe, renders all of its rig views in one batched call,
 applies the per-image affine exposure ``a * C + b``, and minimizes eq. 11:
-colour (L1 + SSIM), depth L1 against the keyframe's depth, and the scale
-regularizer; gradients come from our own adjoints, Adam updates the Gaussians
+colour (L1 + SSIM), depth L1 against the keyframe's depth, normal consistency
+(normals of the rendered depth against those of the depth target, which stands in
+for a monocular normal prior), and the scale regularizer; gradients come from our own adjoints, Adam updates the Gaussians
 and, when enabled, the exposures and the keyframe rig poses (camera-pose
 gradients mapped to the body frame with the adjoint of ``T_c_b``).
 
@@ -25,7 +26,7 @@ from ..buffer import KeyframeBuffer
 from ..geometry import se3_exp
 from ..kernels import Views, render, render_backward
 from .gaussian_map import GaussianMap
-from .losses import color_loss, depth_loss, psnr
+from .losses import color_loss, depth_loss, normal_loss, psnr
 from .optimizer import Adam
 
 log = logging.getLogger("mcgs_warp.mapping")
@@ -43,6 +44,7 @@ class MappingConfig:
     lambda_ssim: float = 0.2
     lambda_depth: float = 0.05  # per m
     lambda_scale: float = 1.0  # per m (isotropy, eq. 11)
+    lambda_normal: float = 0.05  # normal consistency with the depth target's normals (eq. 11)
     insert_stride: int = 4  # px between new Gaussians
     new_alpha: float = 0.5  # add Gaussians where rendered alpha is below this
     densify_every: int = 100
@@ -74,6 +76,7 @@ class Mapper:
         self.cfg = config or MappingConfig()
         self.rng = np.random.default_rng(seed)
         self.cams = buffer.rig.warp_cameras()
+        self._rays = None  # full-resolution unit-depth rays per camera (for normals), made on first use
         self.depths: dict[int, list] = {}  # keyframe -> full-res depth targets per camera
         C = len(buffer.rig)
         self.exposure = np.zeros((buffer.capacity, C, 2))  # (log a, b) per image: a * colour + b
@@ -161,6 +164,10 @@ class Mapper:
                 ld, gd = depth_loss(depth[c, :h, :w], d_t)
                 total += cfg.lambda_depth * ld
                 gD[c, :h, :w] = cfg.lambda_depth * gd
+            if d_t is not None and cfg.lambda_normal > 0:
+                ln, gn = normal_loss(depth[c, :h, :w], d_t, self.full_rays(c))
+                total += cfg.lambda_normal * ln
+                gD[c, :h, :w] += cfg.lambda_normal * gn
         t2 = time.perf_counter()
         params = {"means": g.means, "log_scales": g.log_scales, "quats": g.quats, "opacity_logits": g.opacity_logits, "colors": g.colors}
         train_map = any(self.adam.lrs.get(name, 0) > 0 for name in params)
@@ -202,6 +209,18 @@ class Mapper:
         result = StepResult(total, float(np.mean(psnrs)), k)
         self.history.append(result)
         return result
+
+    def full_rays(self, c: int) -> np.ndarray:
+        """Unit-depth rays [H,W,3] of every pixel of camera ``c``."""
+        if self._rays is None:
+            from ..ba.graph import unproject_pixels
+
+            self._rays = []
+            for cam, spec in zip(self.cams, self.buf.rig.cameras):
+                v, u = np.mgrid[0 : spec.height, 0 : spec.width]
+                uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+                self._rays.append(unproject_pixels(cam, uv).reshape(spec.height, spec.width, 3))
+        return self._rays[c]
 
     # ----------------------------------------------------------------------------------
     def state_arrays(self) -> dict:

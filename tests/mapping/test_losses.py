@@ -74,3 +74,23 @@ def test_isotropy_regularizer_gradient():
         e[i, k] = 1e-4
         fd = (ref(ls + e) - ref(ls - e)) / 2e-4
         assert np.isclose(grad[i, k], fd, rtol=1e-3, atol=1e-6)
+
+
+def test_normal_loss_gradient_matches_finite_differences():
+    from mcgs_warp.mapping.losses import normal_loss
+
+    rng = np.random.default_rng(4)
+    H, W = 9, 11
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - 5.0) / 8.0, (v - 4.0) / 8.0, np.ones((H, W))], -1)
+    target = 3.0 + 0.2 * u / W + 0.1 * np.sin(v)  # a curved surface
+    depth = target + rng.normal(scale=0.05, size=(H, W))
+    depth[0, 0] = 0.0  # unknown pixels do not count
+    value, grad = normal_loss(depth, target, rays)
+    assert 0 < value < 1
+    assert normal_loss(target, target, rays)[0] < 1e-12
+    for idx in [(3, 4), (0, 5), (8, 10), (4, 0)]:
+        e = np.zeros((H, W))
+        e[idx] = 1e-6
+        fd = (normal_loss(depth + e, target, rays)[0] - normal_loss(depth - e, target, rays)[0]) / 2e-6
+        assert abs(grad[idx] - fd) < 1e-5 + 1e-4 * abs(fd), (idx, grad[idx], fd)
