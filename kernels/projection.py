@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .camera import Camera, camera_depth, camera_depth_grad, camera_in_domain, camera_jacobian, camera_jacobian_vjp, camera_project, mat23
+from .camera import Camera, camera_depth, camera_depth_grad, camera_in_domain, camera_jacobian, camera_jacobian_vjp, camera_project
 from .se3 import vec6
 
 #: Added to the diagonal of every 2D covariance (px^2), as the 3DGS reference.

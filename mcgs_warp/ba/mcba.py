@@ -169,7 +169,7 @@ class MCBA:
             B = np.zeros((6 * n, 6 * n))
             v = np.zeros(6 * n)
             G = np.zeros((n, C, h * w, 6 * n))  # pose-depth coupling per depth variable
-            for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
+            for e, (i, ci, j) in enumerate(edges[:, :3]):
                 if i == j:
                     continue
                 si, sj = slot[i], slot[j]

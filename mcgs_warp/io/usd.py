@@ -21,10 +21,18 @@ MAP_PATH = "/World/Map"
 CAMERAS_PATH = "/World/Keyframes"
 
 
+def valid_identifier(name: str) -> str:
+    """A USD prim name from any string (letters, digits, underscores; not starting with a digit)."""
+    import re
+
+    ident = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return ident if ident and not ident[0].isdigit() else f"_{ident}"
+
+
 def write_usd(path, params: dict, cameras=None) -> None:
     """``params``: map arrays (``means``, ``quats`` xyzw, ``log_scales``, ``opacity_logits``,
     ``colors``); ``cameras``: optional list of ``(name, T_w_c [4,4], CameraSpec)``."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdVol, Vt
+    from pxr import Gf, Usd, UsdGeom, UsdVol, Vt
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -55,7 +63,7 @@ def write_usd(path, params: dict, cameras=None) -> None:
             hi = (means + 3 * scales.max(1, keepdims=True)).max(0)
             splat.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
         for name, T_w_c, spec in cameras or []:
-            cam = UsdGeom.Camera.Define(stage, f"{CAMERAS_PATH}/{Sdf.Path.MakeValidIdentifier(name) if hasattr(Sdf.Path, 'MakeValidIdentifier') else name}")
+            cam = UsdGeom.Camera.Define(stage, f"{CAMERAS_PATH}/{valid_identifier(name)}")
             # USD cameras look down -Z with +Y up; ours look down +Z with +Y down.
             flip = np.diag([1.0, -1.0, -1.0, 1.0])
             M = (np.asarray(T_w_c) @ flip).T  # USD uses row vectors

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import warp as wp
 
 from warp_devices import devices
 from mcgs_warp.kernels import Gaussians, Views, bin_tiles, make_camera, project, reference, render

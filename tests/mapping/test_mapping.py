@@ -1,8 +1,6 @@
 """Gaussian mapping: fitting quality, anchors, exposure, poses, densify/prune."""
 
 import numpy as np
-import pytest
-import warp as wp
 
 from conftest import HELD_OUT, KEYFRAMES, make_mapper
 from mcgs_warp.geometry import se3_exp
