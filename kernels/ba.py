@@ -185,15 +185,11 @@ def mcba_cost_kernel(
     weights: wp.array(dtype=float, ndim=3),
     huber_delta: float,
     cost: wp.array(dtype=float),  # [E] out (accumulated)
-    residuals: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] out (0 where invalid)
-    valid: wp.array(dtype=wp.int32, ndim=3),  # [E,h,w] out
 ):
-    """Robust cost and residuals only (for accepting or rejecting an LM step)."""
+    """Robust cost only (for accepting or rejecting an LM step)."""
     e, y, x = wp.tid()
     edge = edges[e]
     cam_i = cameras[edge[1]]
-    valid[e, y, x] = 0
-    residuals[e, y, x] = wp.vec2(0.0)
     if x >= cam_i.width or y >= cam_i.height:
         return
     wgt = weights[e, y, x]
@@ -206,6 +202,4 @@ def mcba_cost_kernel(
     if not residual_valid(cam_j, X_cj, uv):
         return
     r = targets[e, y, x] - uv
-    residuals[e, y, x] = r
-    valid[e, y, x] = 1
     wp.atomic_add(cost, e, huber_cost(wp.sqrt(wgt) * wp.length(r), huber_delta))

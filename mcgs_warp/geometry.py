@@ -125,3 +125,14 @@ def se3_exp(xi) -> np.ndarray:
     T[..., :3, 3] = (V @ rho[..., None])[..., 0]
     T[..., 3, 3] = 1.0
     return T
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of a 4x4 pose for ``(rho, phi)`` ordering: ``T Exp(x) T^-1 = Exp(Ad x)``."""
+    R, t = T[:3, :3], T[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[:3, 3:] = tx @ R
+    A[3:, 3:] = R
+    return A

@@ -26,7 +26,7 @@ import scipy.linalg
 import warp as wp
 
 from ..buffer import KeyframeBuffer
-from ..geometry import se3_exp
+from ..geometry import matrix_to_transform7, se3_exp
 
 
 @dataclass
@@ -83,15 +83,13 @@ class MCBA:
         disp = buf.disp if disp is None else disp
         poses = buf.poses if poses is None else poses
         cost = wp.zeros(n_edges, dtype=float, device=dev)
-        res = wp.zeros((n_edges, buf.h, buf.w), dtype=wp.vec2, device=dev)
-        valid = wp.zeros((n_edges, buf.h, buf.w), dtype=wp.int32, device=dev)
         from ..kernels.ba import mcba_cost_kernel
 
         wp.launch(
             mcba_cost_kernel,
             dim=(n_edges, buf.h, buf.w),
             inputs=[buf.rays, disp, poses, buf.T_b_c, buf.cameras, e_arr, t_arr, w_arr, self.cfg.huber_delta],
-            outputs=[cost, res, valid],
+            outputs=[cost],
             device=dev,
         )
         total = float(cost.numpy().astype(np.float64).sum())
@@ -222,8 +220,6 @@ class MCBA:
                 cand[keyframes] = np.maximum(disp_now + dd, cfg.min_disp).reshape(n, C, h, w).astype(np.float32)
                 cand[keyframes] = np.where(disp_all[keyframes] > 0, cand[keyframes], 0.0)
                 disp_c = wp.array(cand, dtype=float, device=dev)
-                from ..geometry import matrix_to_transform7
-
                 poses_c = wp.array(matrix_to_transform7(T_new).astype(np.float32), dtype=wp.transform, device=dev)
                 poses_full = wp.clone(buf.poses)
                 wp.copy(poses_full, poses_c, count=len(T_new))

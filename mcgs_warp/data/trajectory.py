@@ -25,6 +25,18 @@ class Trajectory:
         return self.poses[:, :3, 3]
 
 
+def nearest_timestamps(t_a: np.ndarray, t_b: np.ndarray, max_dt: float) -> np.ndarray:
+    """For each time in ``t_a`` the index of the nearest time in sorted ``t_b`` within
+    ``max_dt`` seconds, or -1."""
+    t_a, t_b = np.asarray(t_a, np.float64), np.asarray(t_b, np.float64)
+    if len(t_b) == 0:
+        return -np.ones(len(t_a), int)
+    j = np.clip(np.searchsorted(t_b, t_a), 1, max(len(t_b) - 1, 1)) if len(t_b) > 1 else np.zeros(len(t_a), int)
+    if len(t_b) > 1:
+        j = np.where(np.abs(t_b[j - 1] - t_a) <= np.abs(t_b[j] - t_a), j - 1, j)
+    return np.where(np.abs(t_b[j] - t_a) <= max_dt, j, -1)
+
+
 def read_tum(path, min_poses: int = 1) -> Trajectory:
     """Read a TUM trajectory, validating every line (errors name file and line)."""
     path = Path(path)

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import InputError
 from ..rig import CameraSpec, Rig, load_rig
 from .sequence import Frame, Sequence
-from .trajectory import read_tum
+from .trajectory import nearest_timestamps, read_tum
 
 DEPTH_SCALE = 5000.0  # TUM depth PNG units per metre
 MAX_ASSOCIATION_DT = 0.02  # s
@@ -57,12 +57,8 @@ def read_file_list(path: Path):
 
 
 def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT) -> np.ndarray:
-    """For each time in ``t_a`` the index of the nearest time in sorted ``t_b`` within
-    ``max_dt``, or -1."""
-    j = np.clip(np.searchsorted(t_b, t_a), 1, len(t_b) - 1) if len(t_b) > 1 else np.zeros(len(t_a), int)
-    if len(t_b) > 1:
-        j = np.where(np.abs(t_b[j - 1] - t_a) <= np.abs(t_b[j] - t_a), j - 1, j)
-    return np.where(np.abs(t_b[j] - t_a) <= max_dt, j, -1)
+    """Depth frame index per RGB timestamp (nearest within ``max_dt``), or -1."""
+    return nearest_timestamps(t_a, t_b, max_dt)
 
 
 class TumSequence(Sequence):

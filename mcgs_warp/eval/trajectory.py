@@ -12,18 +12,15 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..data.trajectory import Trajectory
+from ..data.trajectory import Trajectory, nearest_timestamps
 from ..errors import InputError
 
 
 def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (est, gt) of nearest timestamps within ``max_dt`` seconds (one-to-one)."""
-    j = np.clip(np.searchsorted(t_gt, t_est), 1, max(len(t_gt) - 1, 1)) if len(t_gt) > 1 else np.zeros(len(t_est), int)
-    if len(t_gt) > 1:
-        j = np.where(np.abs(t_gt[j - 1] - t_est) <= np.abs(t_gt[j] - t_est), j - 1, j)
-    ok = np.abs(t_gt[j] - t_est) <= max_dt
-    i = np.nonzero(ok)[0]
-    j = j[ok]
+    j = nearest_timestamps(t_est, t_gt, max_dt)
+    i = np.nonzero(j >= 0)[0]
+    j = j[i]
     _, first = np.unique(j, return_index=True)  # one estimate per ground-truth pose
     return i[first], j[first]
 

@@ -74,9 +74,9 @@ class DISFlow(FlowProvider):
             uv = grid_pixels(spec, s)
             ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
             h, w = uv.shape[:2]
-            targets[e, :h, :w] = to_reduced(uv + flow[vi, ui], s)
+            t = uv + flow[vi, ui]  # full-resolution pixel in view (j, cj)
+            targets[e, :h, :w] = to_reduced(t, s)
             cam_j = buffer.rig.cameras[cj]
-            t = uv + flow[vi, ui]
             inside = (t[..., 0] >= 0) & (t[..., 0] <= cam_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= cam_j.height - 1)
             weights[e, :h, :w] = conf[vi, ui] * inside
         return targets, weights

@@ -23,7 +23,7 @@ import numpy as np
 import warp as wp
 
 from ..buffer import KeyframeBuffer
-from ..geometry import se3_exp
+from ..geometry import adjoint, se3_exp
 from ..kernels import Views, render, render_backward
 from .gaussian_map import GaussianMap
 from .losses import color_loss, depth_loss, normal_loss, psnr
@@ -338,13 +338,3 @@ class Mapper:
                 values.append(psnr(col[c, : spec.height, : spec.width], imgs[c]))
         return float(np.mean(values))
 
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of a 4x4 pose for ``(rho, phi)`` ordering: ``T Exp(x) T^-1 = Exp(Ad x)``."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[:3, 3:] = tx @ R
-    A[3:, 3:] = R
-    return A

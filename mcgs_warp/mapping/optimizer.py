@@ -20,12 +20,6 @@ class Adam:
         self.eps = eps
         self.state: dict = {}  # name -> (m, v, step)
 
-    def reset(self, name: str | None = None) -> None:
-        if name is None:
-            self.state.clear()
-        else:
-            self.state.pop(name, None)
-
     def remap(self, name: str, index: np.ndarray, n_new: int, width: int) -> None:
         """Carry the moments of kept/copied entries (``index`` [n_new], -1 = new entry)."""
         if name not in self.state:

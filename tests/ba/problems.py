@@ -5,14 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from mcgs_warp.ba.graph import build_edges, camera_overlap
-from mcgs_warp.buffer import KeyframeBuffer, grid_pixels
+from mcgs_warp.buffer import KeyframeBuffer
+from mcgs_warp.frontend.depth import grid_depth
 from mcgs_warp.frontend.flow import GroundTruthFlow
 from mcgs_warp.geometry import se3_exp
-
-
-def grid_depth(spec, depth_full, stride):
-    uv = grid_pixels(spec, stride).astype(int)
-    return depth_full[uv[..., 1], uv[..., 0]]
 
 
 class Problem:
@@ -25,10 +21,7 @@ class Problem:
         depths = []
         for k in frames:
             f = seq[k]
-            grid = np.zeros((len(rig), self.buf.h, self.buf.w), np.float32)
-            for c, spec in enumerate(rig.cameras):
-                g = grid_depth(spec, f.depths[c], stride)
-                grid[c, : g.shape[0], : g.shape[1]] = g
+            grid = grid_depth(f.depths, rig, stride, (self.buf.h, self.buf.w))
             disp = np.where(grid > 0, 1.0 / np.maximum(grid, 1e-6), 0.0)
             self.buf.add(k, f.timestamp, f.images, seq.groundtruth.poses[k], disp, depth_prior=grid)
             depths.append(f.depths)

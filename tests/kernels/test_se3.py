@@ -7,6 +7,7 @@ from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
 from warp_devices import devices
+from mcgs_warp.geometry import adjoint
 from mcgs_warp.kernels.se3 import mat66, se3_adjoint, se3_compose, se3_exp, se3_inverse, se3_log, se3_retract, vec6
 
 
@@ -79,8 +80,9 @@ def test_exp_log_compose_inverse_adjoint(device):
         np.testing.assert_allclose(to_matrix(comp_t[k]), T @ U, atol=5e-6)
         np.testing.assert_allclose(to_matrix(inv_t[k]), np.linalg.inv(T), atol=5e-6)
         np.testing.assert_allclose(to_matrix(retr_t[k]), T @ U, atol=5e-6)
-        # T Exp(e) T^-1 = Exp(Ad(T) e)
+        # T Exp(e) T^-1 = Exp(Ad(T) e), and the NumPy twin in mcgs_warp.geometry agrees
         np.testing.assert_allclose(expm(hat(adj[k] @ eta[k])), T @ U @ np.linalg.inv(T), atol=5e-6)
+        np.testing.assert_allclose(adjoint(T), adj[k], atol=5e-6)
 
 
 def test_exp_derivative_at_identity_is_the_generator():
