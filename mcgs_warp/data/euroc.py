@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import pose
 from ..rig import CameraSpec, Rig, load_yaml, parse_pose
-from .sequence import Frame, Sequence
+from .sequence import MAX_UNMATCHED_FRACTION, Frame, Sequence, warn
 from .trajectory import Trajectory
 
 DISTORTION_MODELS = {"radial-tangential": "pinhole", "radtan": "pinhole", "equidistant": "fisheye"}
@@ -131,12 +131,24 @@ class EurocSequence(Sequence):
         common = sorted(set(stamps[0]) & set(stamps[1]))
         if not common:
             raise InputError(self.root, None, "cam0 and cam1 share no timestamps")
+        self._check_dropped(len(set(stamps[0]) | set(stamps[1])), len(common), len(stamps[0]), len(stamps[1]))
         self.rig = Rig(cams)
         self._ns = common
         self._files = files
         self.timestamps = np.array(common, dtype=np.float64) * 1e-9
         gt = self.root / "state_groundtruth_estimate0" / "data.csv"
         self.groundtruth = read_groundtruth(gt) if gt.is_file() else None
+
+    def _check_dropped(self, total: int, kept: int, n0: int, n1: int) -> None:
+        """Frames only one camera has are dropped: say how many; more than 10 % of all frames
+        (and more than one, for tiny sequences) means the two lists do not belong together."""
+        dropped = total - kept
+        if dropped == 0:
+            return
+        what = f"dropped {dropped} of {total} frames that only one camera has (cam0/data.csv lists {n0}, cam1/data.csv lists {n1})"
+        if dropped > max(1, MAX_UNMATCHED_FRACTION * total):
+            raise InputError(self.root, None, f"{what}: more than {MAX_UNMATCHED_FRACTION:.0%} do not pair up; check that both lists come from this recording")
+        warn(self.root, what)
 
     def load_frame(self, k: int) -> Frame:
         from ..io import read_image

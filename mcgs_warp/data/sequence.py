@@ -14,6 +14,7 @@ Our folder format::
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +25,13 @@ from ..rig import Rig, load_rig, save_rig
 from .trajectory import Trajectory, read_tum, write_tum
 
 DEPTH_SCALE_MM = 1000.0  # our depth PNGs: uint16 millimetres
+MAX_UNMATCHED_FRACTION = 0.10  # readers: more frames than this without a partner is worth a word
+
+
+def warn(source, message: str) -> None:
+    """One warning line on stderr, ``warning: <source>: <message>`` (input that reads, but oddly)."""
+    where = f"{source}: " if source is not None else ""
+    print(f"warning: {where}{message}", file=sys.stderr)
 
 
 @dataclass
@@ -125,12 +133,42 @@ class FolderSequence(Sequence):
             rgb = self.root / f"cam{i}" / "rgb"
             if not rgb.is_dir():
                 raise InputError(rgb, None, f"missing image folder for camera {i} ({self.rig.cameras[i].name})")
-            for k in range(len(self)):  # cheap existence check now, decoding later
-                if not (rgb / frame_name(k)).is_file():
-                    raise InputError(rgb / frame_name(k), None, f"missing frame {k} of {len(self)} (timestamps.txt lists {len(self)})")
-            self.has_depth.append((self.root / f"cam{i}" / "depth").is_dir())
+            self._check_frame_files(rgb)
+            depth = self.root / f"cam{i}" / "depth"
+            self.has_depth.append(depth.is_dir())
+            if self.has_depth[-1]:
+                self._check_frame_files(depth)
         gt = self.root / "groundtruth.txt"
         self.groundtruth = read_tum(gt) if gt.is_file() else None
+        if self.groundtruth is not None:
+            self._warn_groundtruth_outside(gt)
+
+    def _check_frame_files(self, folder: Path) -> None:
+        """Frames 0..K-1 are all in ``folder`` (a gap is a missing frame) and it holds no
+        other PNGs (more images than timestamps): a cheap listing now, decoding later."""
+        names = {p.name for p in folder.glob("*.png")}
+        n, label = len(self), folder.relative_to(self.root).as_posix()
+        counts = f"{n} timestamps but {label} holds {len(names)} images"
+        for k in range(n):
+            if frame_name(k) not in names:
+                raise InputError(folder / frame_name(k), None, f"missing frame {k} of {n} (timestamps.txt lists {counts})")
+        if len(names) != n:
+            raise InputError(self.root / "timestamps.txt", None, f"lists {counts}")
+
+    def _warn_groundtruth_outside(self, path: Path) -> None:
+        """One warning when ground-truth poses lie outside the frames' time range by more than
+        the association tolerance (another clock, or a file from another sequence)."""
+        from .tum import MAX_ASSOCIATION_DT  # here: tum imports this module
+
+        t0, t1 = float(self.timestamps[0]), float(self.timestamps[-1])
+        t = self.groundtruth.timestamps
+        outside = int(np.count_nonzero((t < t0 - MAX_ASSOCIATION_DT) | (t > t1 + MAX_ASSOCIATION_DT)))
+        if outside:
+            warn(
+                path,
+                f"{outside} of {len(t)} entries lie outside the frames' time range [{t0:.3f}, {t1:.3f}] s "
+                f"(timestamps.txt) by more than {MAX_ASSOCIATION_DT} s; they are not used for evaluation",
+            )
 
     def load_frame(self, k: int) -> Frame:
         from ..io import read_image

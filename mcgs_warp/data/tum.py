@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..rig import CameraSpec, Rig, load_rig
-from .sequence import Frame, Sequence
+from .sequence import MAX_UNMATCHED_FRACTION, Frame, Sequence, warn
 from .trajectory import nearest_timestamps, read_tum
 
 DEPTH_SCALE = 5000.0  # TUM depth PNG units per metre
@@ -70,9 +70,16 @@ class TumSequence(Sequence):
         self._depth = [None] * len(self.timestamps)
         if (self.root / "depth.txt").is_file():
             t_d, names = read_file_list(self.root / "depth.txt")
-            for k, j in enumerate(associate(self.timestamps, t_d)):
+            match = associate(self.timestamps, t_d)
+            for k, j in enumerate(match):
                 if j >= 0:
                     self._depth[k] = names[j]
+            unmatched = int(np.count_nonzero(match < 0))
+            if unmatched > MAX_UNMATCHED_FRACTION * len(match):
+                warn(
+                    self.root / "depth.txt",
+                    f"{unmatched} of {len(match)} rgb frames (rgb.txt) have no depth frame within {MAX_ASSOCIATION_DT} s; those frames run without depth",
+                )
         gt = self.root / "groundtruth.txt"
         self.groundtruth = read_tum(gt) if gt.is_file() else None
 
