@@ -85,6 +85,15 @@ def huber_cost(s: float, delta: float):
 
 
 @wp.func
+def residual_weight(wgt: float, target: wp.vec2):
+    """Confidence of one residual: 0 where the weight or the target is not finite, so a
+    NaN/Inf correspondence drops out of the cost and the normal equations alike."""
+    if wp.isfinite(wgt) and wp.isfinite(target):
+        return wgt
+    return 0.0
+
+
+@wp.func
 def residual_valid(cam: Camera, X: wp.vec3, uv: wp.vec2):
     if not camera_in_domain(cam, X, NEAR, FAR):
         return False
@@ -101,7 +110,7 @@ def mcba_linearize_kernel(
     cameras: wp.array(dtype=Camera),  # [C] at the reduced resolution
     edges: wp.array(dtype=wp.vec4i),  # [E] (i, ci, j, cj)
     targets: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] corresponding pixel in (j, cj)
-    weights: wp.array(dtype=float, ndim=3),  # [E,h,w] confidence >= 0
+    weights: wp.array(dtype=float, ndim=3),  # [E,h,w] confidence >= 0 (NaN/Inf target or weight: 0)
     huber_delta: float,  # px
     H: wp.array(dtype=mat66, ndim=2),  # [E,3] out: H_ii, H_ij, H_jj
     g: wp.array(dtype=vec6, ndim=2),  # [E,2] out: v_i, v_j
@@ -119,7 +128,8 @@ def mcba_linearize_kernel(
     cam_i = cameras[ci]
     if x >= cam_i.width or y >= cam_i.height:
         return
-    wgt = weights[e, y, x]
+    target = targets[e, y, x]
+    wgt = residual_weight(weights[e, y, x], target)
     d = disp[i, ci, y, x]
     if wgt <= 0.0 or d <= 0.0:
         return
@@ -128,7 +138,7 @@ def mcba_linearize_kernel(
     uv = camera_project(cam_j, X_cj)
     if not residual_valid(cam_j, X_cj, uv):
         return
-    r = targets[e, y, x] - uv
+    r = target - uv
     s = wp.sqrt(wgt) * wp.length(r)
     W = wgt * huber_weight(s, huber_delta)
     wp.atomic_add(cost, e, huber_cost(s, huber_delta))
@@ -192,7 +202,8 @@ def mcba_cost_kernel(
     cam_i = cameras[edge[1]]
     if x >= cam_i.width or y >= cam_i.height:
         return
-    wgt = weights[e, y, x]
+    target = targets[e, y, x]
+    wgt = residual_weight(weights[e, y, x], target)
     d = disp[edge[0], edge[1], y, x]
     if wgt <= 0.0 or d <= 0.0:
         return
@@ -201,5 +212,5 @@ def mcba_cost_kernel(
     uv = camera_project(cam_j, X_cj)
     if not residual_valid(cam_j, X_cj, uv):
         return
-    r = targets[e, y, x] - uv
+    r = target - uv
     wp.atomic_add(cost, e, huber_cost(wp.sqrt(wgt) * wp.length(r), huber_delta))
