@@ -3,7 +3,7 @@
 import numpy as np
 
 from conftest import HELD_OUT, KEYFRAMES, make_mapper
-from mcgs_warp.geometry import se3_exp
+from mcgs_warp.geometry import matrix_to_quat, quat_to_matrix, se3_exp
 from mcgs_warp.kernels import Views, render
 from mcgs_warp.mapping.gaussian_map import GaussianMap
 from mcgs_warp.mapping.mapper import MappingConfig
@@ -24,31 +24,58 @@ def test_fit_reaches_target_psnr(fitted, mapping_seq):
 
 
 def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
-    gm = GaussianMap("cpu")
+    """Eq. 12-13 on the parameters and in the render: the Gaussians anchored to keyframe 2
+    are visible from its cameras, follow a rigid correction so that the moved cameras see
+    the same image, and a scale change renders as Gaussians moved by hand."""
     params = fitted.map.to_numpy()
-    gm.set_numpy(params)
-    delta = se3_exp([0.3, -0.1, 0.2, 0.1, -0.2, 0.05])
-    gm.move_anchored(2, delta, scale=1.5)
-    after = gm.to_numpy()
     a = params["anchors"] == 2
     assert a.any() and (~a).any()
-    np.testing.assert_allclose(after["means"][a], params["means"][a] @ delta[:3, :3].T + delta[:3, 3], atol=1e-5)
+    delta = se3_exp([0.3, -0.1, 0.2, 0.1, -0.2, 0.05])
+    R, t = delta[:3, :3], delta[:3, 3]
+    gm = GaussianMap("cpu")
+    gm.set_numpy(params)
+    gm.move_anchored(2, delta, scale=1.5)
+    after = gm.to_numpy()
+    np.testing.assert_allclose(after["means"][a], params["means"][a] @ R.T + t, atol=1e-5)
     np.testing.assert_array_equal(after["means"][~a], params["means"][~a])
     np.testing.assert_allclose(after["log_scales"][a], params["log_scales"][a] + np.log(1.5), atol=1e-6)
-    from mcgs_warp.kernels.reference import quat_to_rotation
+    np.testing.assert_allclose(quat_to_matrix(after["quats"][a]), R @ quat_to_matrix(params["quats"][a]), atol=1e-5)
 
-    np.testing.assert_allclose(quat_to_rotation(after["quats"][a]), delta[:3, :3] @ quat_to_rotation(params["quats"][a]), atol=1e-5)
-    # Rendering: the moved Gaussians seen from the moved camera look as before.
     only = {k: v[a] for k, v in params.items()}
-    moved = {k: v[a] for k, v in gm.to_numpy().items()}
-    gm.set_numpy(moved)
-    g0 = GaussianMap("cpu")
-    g0.set_numpy(only)
-    cam = fitted.cams[0]
-    T = fitted.buf.rig.camera_poses(fitted.buf.get_poses()[2])[0]
-    before_img = render(g0.gaussians, Views.create([cam], T[None])).color.numpy()
-    moved_img = render(gm.gaussians, Views.create([cam], (delta @ T)[None])).color.numpy()
-    np.testing.assert_allclose(moved_img, before_img, atol=2e-4)
+    T_w_c = fitted.buf.rig.camera_poses(fitted.buf.get_poses()[2])  # the keyframe's 3 cameras
+
+    def draw(p, T):
+        g = GaussianMap("cpu")
+        g.set_numpy(p)
+        out = render(g.gaussians, Views.create(fitted.cams, T))
+        return out.color.numpy(), out.alpha.numpy()
+
+    def moved(p, log_scale_change):
+        """Eq. 12-13 applied by hand (float64)."""
+        q = dict(p, means=p["means"] @ R.T + t, log_scales=p["log_scales"] + log_scale_change)
+        q["quats"] = matrix_to_quat(R @ quat_to_matrix(p["quats"])).astype(np.float32)
+        return q
+
+    def move(p, scale):
+        g = GaussianMap("cpu")
+        g.set_numpy(p)
+        g.move_anchored(2, delta, scale=scale)
+        return g.to_numpy()
+
+    color0, alpha0 = draw(only, T_w_c)
+    covered = (alpha0 > 0.5).mean(axis=(1, 2))
+    assert covered.max() > 0.02, covered  # the anchored Gaussians are in view (not a vacuous check)
+    # Rigid correction: the moved cameras see exactly what the old ones saw.
+    color1, alpha1 = draw(move(only, 1.0), delta @ T_w_c)
+    np.testing.assert_allclose(color1, color0, atol=2e-4)
+    np.testing.assert_allclose(alpha1, alpha0, atol=2e-4)
+    # With a scale change (eq. 13): as the same Gaussians moved by hand, and visibly not as the
+    # rigid move alone (so the comparison sees the scale).
+    color2, alpha2 = draw(move(only, 1.5), delta @ T_w_c)
+    hand_color, hand_alpha = draw(moved(only, np.log(1.5)), delta @ T_w_c)
+    np.testing.assert_allclose(color2, hand_color, atol=2e-4)
+    np.testing.assert_allclose(alpha2, hand_alpha, atol=2e-4)
+    assert (alpha2 - alpha1).mean() > 0.01 and (alpha2 > 0.5).mean() > (alpha1 > 0.5).mean()
 
 
 def test_exposure_refinement_recovers_gain_and_bias(fitted, mapping_seq):
