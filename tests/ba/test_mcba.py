@@ -12,10 +12,11 @@ def test_three_camera_rig_converges_to_ground_truth(synthetic_seq):
     P.perturb(np.random.default_rng(0), trans=0.05, rot_deg=2.0, depth_noise=0.1)
     before = P.pose_errors().max(0)
     assert before[0] > 0.04 and before[1] > 1.9
-    stats = MCBA(P.buf, MCBAConfig(iterations=10)).solve(P.edges, P.targets, P.weights)
+    stats = MCBA(P.buf, MCBAConfig(iterations=6)).solve(P.edges, P.targets, P.weights)
     err = P.pose_errors()
-    assert err[:, 0].max() < 1e-3 and err[:, 1].max() < 0.01, err
-    assert np.median(P.depth_rel_errors()) < 1e-3
+    # README ("Tracking"): below 1e-6 m in a few iterations (float32 kernels: ~1e-7 m here).
+    assert err[:, 0].max() < 1e-6 and err[:, 1].max() < 1e-4, err
+    assert np.median(P.depth_rel_errors()) < 1e-5
     assert stats.cost[-1] < 1e-6 * stats.cost[0]
     assert np.all(np.diff(stats.cost) <= 0)  # LM only accepts descending steps
 

@@ -17,8 +17,9 @@ def views_at(seq, frames):
 def test_fit_reaches_target_psnr(fitted, mapping_seq):
     train = fitted.evaluate(views_at(mapping_seq, KEYFRAMES))
     held = fitted.evaluate(views_at(mapping_seq, HELD_OUT))
-    assert train >= 28.0, train
-    assert held >= 24.0, held
+    # README ("Mapping"): about 30.5 dB on the training views and the same on held-out frames.
+    assert train >= 30.0, train
+    assert abs(held - train) < 0.5, (train, held)
     first = np.mean([r.psnr for r in fitted.history[:5]])
     assert fitted.history[-1].psnr > first + 2.0  # the optimizer does the work, not just the init
 
