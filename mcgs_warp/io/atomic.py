@@ -2,7 +2,8 @@
 
 Every file a run writes goes to a temporary name beside its final one and is
 renamed into place (``os.replace``), so an interrupted run never leaves a
-truncated file under a final name.
+truncated file under a final name. The file gets the mode a plain ``open()`` would
+give it (``0o666`` less the umask), not the private ``0o600`` of a temporary file.
 """
 
 from __future__ import annotations
@@ -17,6 +18,18 @@ import numpy as np
 from ..errors import InputError
 
 
+def _umask() -> int:
+    """The process umask, read without changing it where the OS allows (Linux)."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    mask = os.umask(0o077)  # elsewhere set-and-restore; restrictive in between
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_write(path, mode: str = "w", **kwargs):
     """Open a temporary file beside ``path``; rename it to ``path`` when the block succeeds."""
@@ -28,6 +41,7 @@ def atomic_write(path, mode: str = "w", **kwargs):
             yield f
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
