@@ -131,7 +131,7 @@ def cmd_eval(args) -> int:
 
     est = read_tum(args.est, min_poses=3)
     gt = read_tum(args.gt, min_poses=3)
-    metrics, aligned, matched_gt = evaluate(est, gt, max_dt=args.max_dt, with_scale=not args.no_scale)
+    metrics, aligned, matched_gt, times = evaluate(est, gt, max_dt=args.max_dt, with_scale=not args.no_scale, return_timestamps=True)
     d = metrics.to_dict()
     for k, v in d.items():
         print(f"{k:<16} {v:.6f}" if isinstance(v, float) else f"{k:<16} {v}")
@@ -139,7 +139,7 @@ def cmd_eval(args) -> int:
         with atomic_write(args.json) as f:
             json.dump(d, f, indent=2)
     if args.plot:
-        plot_trajectory(args.plot, aligned[:, :2], matched_gt[:, :2], title=f"ATE {metrics.ate_rmse_m * 100:.2f} cm")
+        plot_trajectory(args.plot, aligned, matched_gt, times)  # the figure a run writes to plots/trajectory.png
     return 0
 
 

@@ -1,97 +1,132 @@
-"""PNG plots drawn with OpenCV (no plotting dependency): trajectory top view and curves."""
+"""Figures for people: trajectory (top view, error over time) and the mapping curve.
+
+Drawn with matplotlib, the library evo and SLAM evaluation scripts use, on its Agg
+canvas directly (a ``Figure`` with a ``FigureCanvasAgg``, no pyplot): headless, and
+a user's interactive backend and pyplot state are left alone. PNGs are written
+through :func:`mcgs_warp.io.atomic_write`, so a plot is complete or absent.
+"""
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
 
-from ..io import write_image
+from ..io import atomic_write
 
-COLORS = {"gt": (0.1, 0.1, 0.1), "est": (0.85, 0.2, 0.1), "grid": (0.88, 0.88, 0.88)}
-
-
-def _canvas(w, h):
-    return np.full((h, w, 3), 255, np.uint8)  # OpenCV draws text on 8-bit images
-
-
-def _to_bgr(c):
-    return tuple(int(255 * v) for v in c[::-1])
+DPI = 100
+TRAJECTORY_SIZE = (1300, 560)  # pixels (width, height) of plots/trajectory.png
+MAPPING_SIZE = (900, 600)  # pixels of plots/mapping.png
+GT_COLOR, EST_COLOR, CMAP = "0.15", "tab:red", "viridis"
 
 
-def _save(path, img):
-    write_image(path, img[..., ::-1].astype(np.float32) / 255.0)  # drawn in BGR
+def _figure(size) -> Figure:
+    fig = Figure(figsize=(size[0] / DPI, size[1] / DPI), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
 
 
-def _draw_axes(img, lo, hi, to_px, labels):
-    import cv2
-
-    h, w = img.shape[:2]
-    for v in np.linspace(lo[0], hi[0], 6):
-        x, _ = to_px(np.array([v, lo[1]]))
-        cv2.line(img, (x, 40), (x, h - 40), _to_bgr(COLORS["grid"]), 1)
-        cv2.putText(img, f"{v:.2f}", (x - 18, h - 22), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (77, 77, 77), 1)
-    for v in np.linspace(lo[1], hi[1], 6):
-        _, y = to_px(np.array([lo[0], v]))
-        cv2.line(img, (50, y), (w - 20, y), _to_bgr(COLORS["grid"]), 1)
-        cv2.putText(img, f"{v:.2f}", (4, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (77, 77, 77), 1)
-    cv2.putText(img, labels[0], (w // 2 - 20, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
-    cv2.putText(img, labels[1], (4, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+def save_png(fig: Figure, path) -> None:
+    """Write ``fig`` as a PNG of exactly its pixel size, atomically."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    with atomic_write(path, "wb") as f:
+        f.write(buf.getvalue())
 
 
-def plot_trajectory(path, est_xy: np.ndarray, gt_xy: np.ndarray | None, title: str = "", size=(640, 520)) -> None:
-    """Top view (x, y) of the estimate (red) and ground truth (black), equal axis scales."""
-    import cv2
-
-    w, h = size
-    img = _canvas(w, h)
-    pts = est_xy if gt_xy is None else np.concatenate([est_xy, gt_xy])
-    lo, hi = pts.min(0), pts.max(0)
-    span = max(float((hi - lo).max()), 1e-6) * 1.1
-    mid = (lo + hi) / 2
-    lo, hi = mid - span / 2, mid + span / 2
-    scale = min(w - 70, h - 80) / span
-
-    def to_px(p):
-        return int(50 + (p[0] - lo[0]) * scale), int(h - 40 - (p[1] - lo[1]) * scale)
-
-    _draw_axes(img, lo, hi, to_px, ("x [m]", "y [m]"))
-    for xy, key in ((gt_xy, "gt"), (est_xy, "est")):
-        if xy is None or len(xy) < 2:
-            continue
-        poly = np.array([to_px(p) for p in xy], np.int32)
-        cv2.polylines(img, [poly], False, _to_bgr(COLORS[key]), 2, cv2.LINE_AA)
-    cv2.putText(img, title, (60, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
-    cv2.putText(img, "estimate", (w - 130, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.45, _to_bgr(COLORS["est"]), 1)
-    if gt_xy is not None:
-        cv2.putText(img, "ground truth", (w - 130, 42), cv2.FONT_HERSHEY_SIMPLEX, 0.45, _to_bgr(COLORS["gt"]), 1)
-    _save(path, img)
+def _smooth(v: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving average over ``n`` samples (NaNs ignored), same length as ``v``."""
+    ok = np.isfinite(v)
+    k = np.ones(n)
+    num = np.convolve(np.where(ok, v, 0.0), k, "same")
+    den = np.convolve(ok.astype(float), k, "same")
+    return np.where(den > 0, num / np.maximum(den, 1), np.nan)
 
 
-def plot_curve(path, x: np.ndarray, ys: dict, xlabel: str, ylabel: str, title: str = "", size=(640, 360)) -> None:
-    """Line plot of one or more series ``ys`` (name -> values) against ``x``."""
-    import cv2
+def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None = None) -> Figure:
+    """Top view (x, y) of the estimate and ground truth, the estimate coloured by its position
+    error (colorbar in cm), and the translation error over time beside it.
 
-    w, h = size
-    img = _canvas(w, h)
-    allv = np.concatenate([np.asarray(v, float) for v in ys.values()]) if ys else np.zeros(1)
-    finite = allv[np.isfinite(allv)]
-    lo_y, hi_y = (finite.min(), finite.max()) if len(finite) else (0.0, 1.0)
-    if hi_y - lo_y < 1e-9:
-        hi_y = lo_y + 1.0
-    lo = np.array([float(np.min(x)) if len(x) else 0.0, lo_y])
-    hi = np.array([float(np.max(x)) if len(x) else 1.0, hi_y])
-    hi[0] = max(hi[0], lo[0] + 1e-9)
+    ``est_xyz`` [N,3] are positions aligned to the ground truth, ``gt_xyz`` [N,3] the matched
+    ground-truth positions (same order) or None: then only the estimate is drawn.
+    ``timestamps`` [N] (seconds) label the error axis; without them it is the pose index."""
+    est = np.asarray(est_xyz, float)
+    gt = None if gt_xyz is None else np.asarray(gt_xyz, float)
+    if gt is None:
+        fig = _figure((TRAJECTORY_SIZE[1] + 120, TRAJECTORY_SIZE[1]))
+        ax = fig.add_subplot()
+        ax.plot(est[:, 0], est[:, 1], color=EST_COLOR, lw=1.8, label="estimate")
+    else:
+        if gt.shape != est.shape:
+            raise ValueError(f"estimate {est.shape} and ground truth {gt.shape} positions must match one to one")
+        err_cm = 100.0 * np.linalg.norm(est - gt, axis=1)
+        fig = _figure(TRAJECTORY_SIZE)
+        ax, ax_err = fig.subplots(1, 2, width_ratios=[1.1, 1])
+        ax.plot(gt[:, 0], gt[:, 1], color=GT_COLOR, lw=1.2, ls="--", label="ground truth", zorder=5)  # on top: thin
+        seg = np.stack([est[:-1, :2], est[1:, :2]], 1)
+        lines = LineCollection(seg, cmap=CMAP, lw=2.5, zorder=3)
+        lines.set_array(0.5 * (err_cm[:-1] + err_cm[1:]))
+        ax.add_collection(lines)
+        dots = ax.scatter(est[:, 0], est[:, 1], c=err_cm, cmap=CMAP, s=10, zorder=4, label="estimate (colour: error)")
+        lines.set_norm(dots.norm)
+        fig.colorbar(dots, ax=ax, label="position error [cm]", shrink=0.9)
+        ate = float(np.sqrt(np.mean(err_cm**2)))
+        t = np.asarray(timestamps, float) - float(timestamps[0]) if timestamps is not None else np.arange(len(est))
+        ax_err.plot(t, err_cm, color=EST_COLOR, lw=1.5, label="translation error")
+        ax_err.axhline(ate, color="0.4", ls=":", lw=1.2, label=f"ATE (RMSE) {ate:.2f} cm")
+        ax_err.set_xlabel("time [s]" if timestamps is not None else "pose")
+        ax_err.set_ylabel("translation error [cm]")
+        ax_err.set_ylim(bottom=0)
+        ax_err.set_title("error over time")
+        ax_err.grid(True, alpha=0.3)
+        ax_err.legend(loc="best")
+        if title is None:
+            title = f"ATE {ate:.2f} cm over {len(est)} poses"
+    ax.plot(*est[0, :2], "o", color="0.3", ms=6, ls="none", label="start", zorder=6)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("top view")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    fig.suptitle(title if title is not None else "estimated trajectory (no ground truth)")
+    return fig
 
-    def to_px(p):
-        return int(50 + (p[0] - lo[0]) / (hi[0] - lo[0]) * (w - 70)), int(h - 40 - (p[1] - lo[1]) / (hi[1] - lo[1]) * (h - 80))
 
-    _draw_axes(img, lo, hi, to_px, (xlabel, ylabel))
-    palette = [(0.85, 0.2, 0.1), (0.1, 0.4, 0.8), (0.2, 0.6, 0.2), (0.5, 0.2, 0.6)]
-    for n, (name, v) in enumerate(ys.items()):
-        v = np.asarray(v, float)
-        ok = np.isfinite(v)
-        if ok.sum() >= 2:
-            poly = np.array([to_px(p) for p in np.stack([np.asarray(x, float)[ok], v[ok]], 1)], np.int32)
-            cv2.polylines(img, [poly], False, _to_bgr(palette[n % 4]), 2, cv2.LINE_AA)
-        cv2.putText(img, name, (w - 160, 24 + 18 * n), cv2.FONT_HERSHEY_SIMPLEX, 0.45, _to_bgr(palette[n % 4]), 1)
-    cv2.putText(img, title, (60, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
-    _save(path, img)
+def plot_trajectory(path, est_xyz, gt_xyz=None, timestamps=None, title: str | None = None) -> Figure:
+    """Draw :func:`trajectory_figure` and write it to ``path`` (PNG); returns the figure."""
+    fig = trajectory_figure(est_xyz, gt_xyz, timestamps, title)
+    save_png(fig, path)
+    return fig
+
+
+def mapping_figure(iterations, loss, psnr, title: str = "mapping") -> Figure:
+    """Loss (log scale) and PSNR per mapping iteration, in two panels sharing the x axis;
+    with many steps each is drawn faintly and a moving average over them solidly."""
+    it, series = np.asarray(iterations, float), (np.asarray(loss, float), np.asarray(psnr, float))
+    fig = _figure(MAPPING_SIZE)
+    axes = fig.subplots(2, 1, sharex=True)
+    n = max(1, len(it) // 40)
+    for ax, v, color, name, unit in zip(axes, series, ("tab:blue", "tab:green"), ("loss", "PSNR"), ("", " [dB]")):
+        ax.plot(it, v, color=color, lw=0.8 if n > 1 else 1.8, alpha=0.35 if n > 1 else 1.0, label=f"{name} per step")
+        if n > 1:
+            ax.plot(it, _smooth(v, n), color=color, lw=2.0, label=f"{name}, mean of {n} steps")
+        ax.set_ylabel(name + unit)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="best")
+    if np.all(series[0][np.isfinite(series[0])] > 0):
+        axes[0].set_yscale("log")
+    axes[1].set_xlabel("mapping iteration")
+    fig.suptitle(title)
+    return fig
+
+
+def plot_mapping(path, iterations, loss, psnr, title: str = "mapping") -> Figure:
+    """Draw :func:`mapping_figure` and write it to ``path`` (PNG); returns the figure."""
+    fig = mapping_figure(iterations, loss, psnr, title)
+    save_png(fig, path)
+    return fig

@@ -54,8 +54,10 @@ class TrajectoryMetrics:
         return asdict(self)
 
 
-def evaluate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, with_scale: bool = True, rpe_delta: int = 1):
-    """ATE/RPE of ``est`` against ``gt``; returns metrics and the aligned estimate positions."""
+def evaluate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, with_scale: bool = True, rpe_delta: int = 1, return_timestamps: bool = False):
+    """ATE/RPE of ``est`` against ``gt``: returns ``(metrics, aligned estimate positions,
+    matched ground-truth positions)``, and the matched estimate timestamps as a fourth
+    item with ``return_timestamps=True``."""
     i, j = associate(est.timestamps, gt.timestamps, max_dt)
     if len(i) < 3:
         raise InputError(None, None, f"only {len(i)} estimated poses match ground-truth timestamps within {max_dt} s; need at least 3")
@@ -77,4 +79,4 @@ def evaluate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, with_scale: 
         path_length_m=float(np.linalg.norm(np.diff(G, axis=0), axis=1).sum()),
         n_matched=int(len(i)),
     )
-    return metrics, A, G
+    return (metrics, A, G, est.timestamps[i]) if return_timestamps else (metrics, A, G)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..data.trajectory import Trajectory, write_tum
 from ..eval.metrics import psnr, ssim
-from ..eval.plots import plot_curve, plot_trajectory
+from ..eval.plots import plot_mapping, plot_trajectory
 from ..eval.trajectory import evaluate
 from ..io import atomic_write, write_image
 from ..io.ply import write_ply
@@ -98,20 +98,17 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "seconds_total": float(seconds_total),
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
-    gt_xy = None
+    gt_xyz, times = None, traj.timestamps
     aligned = traj.positions
     if seq.groundtruth is not None:
-        tm, aligned, gt = evaluate(traj, seq.groundtruth)
+        tm, aligned, gt_xyz, times = evaluate(traj, seq.groundtruth, return_timestamps=True)
         se3, _, _ = evaluate(traj, seq.groundtruth, with_scale=False)
         metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m})
-        gt_xy = gt[:, :2]
     with atomic_write(out / "metrics.json") as f:
         json.dump(metrics, f, indent=2)
-    title = f"ATE {metrics['ate_rmse_m'] * 100:.2f} cm" if metrics["ate_rmse_m"] is not None else "estimate"
-    plot_trajectory(out / "plots" / "trajectory.png", aligned[:, :2], gt_xy, title=title)
+    plot_trajectory(out / "plots" / "trajectory.png", aligned, gt_xyz, times)
     if result.mapping_curve:
-        it, loss, ps = (np.array(v, float) for v in zip(*result.mapping_curve))
-        plot_curve(out / "plots" / "mapping.png", it, {"loss x 100": 100 * loss, "PSNR dB": ps}, "iteration", "", title="mapping")
+        plot_mapping(out / "plots" / "mapping.png", *(np.array(v, float) for v in zip(*result.mapping_curve)))
     import yaml
 
     with atomic_write(out / "config.yaml") as f:
