@@ -16,11 +16,9 @@ Modules:
     reference   NumPy float64 brute-force twin used by the tests
 """
 
-from .camera import EQUIRECTANGULAR, FISHEYE, MODEL_IDS, PINHOLE, Camera, make_camera
+from .camera import EQUIRECTANGULAR, FAR, FISHEYE, MODEL_IDS, NEAR, PINHOLE, Camera, make_camera
 from .se3 import mat66, vec6
 from .splat import (
-    FAR,
-    NEAR,
     Gaussians,
     Gradients,
     Projection,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .camera import Camera, camera_in_domain, camera_jacobian, camera_project, camera_unproject
+from .camera import FAR, NEAR, Camera, camera_in_domain, camera_jacobian, camera_project, camera_unproject
 from .se3 import skew, vec6
 
 wp.set_module_options({"enable_backward": False})
@@ -32,8 +32,6 @@ mat26 = wp.types.matrix(shape=(2, 6), dtype=wp.float32)
 
 #: Residuals whose predicted pixel lies further than this outside the image are dropped (px).
 IMAGE_MARGIN = wp.constant(1.0)
-NEAR = wp.constant(0.01)
-FAR = wp.constant(1000.0)
 
 
 @wp.kernel

@@ -37,6 +37,11 @@ EQUIRECTANGULAR = wp.constant(2)
 
 #: Model name -> integer id stored in :class:`Camera`.
 MODEL_IDS = {"pinhole": 0, "fisheye": 1, "equirectangular": 2}
+#: Near and far planes (m, DESIGN.md), along the model's depth (``camera_depth``): the
+#: renderer culls Gaussians outside them and MCBA drops residuals whose point lies outside.
+#: The one definition; the other modules import these.
+NEAR = wp.constant(0.01)
+FAR = wp.constant(100.0)
 #: Number of distortion coefficients each model takes.
 N_DIST = {"pinhole": 5, "fisheye": 4, "equirectangular": 0}
 

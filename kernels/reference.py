@@ -3,19 +3,19 @@
 Kept beside the Warp kernels, as gsplat keeps a torch reference: tests compare the
 two, and finite differences of this float64 renderer check the hand-written
 adjoints. It follows the same numerics (see :mod:`projection`, :mod:`tiles`,
-:mod:`blend`) but shares no code with them: the EWA Jacobian here comes from
-central differences of :func:`project`, every pixel looks at every Gaussian (no
-tiles), and everything is float64 except the depth sort key, which is rounded to
-float32 as in the kernels so that ties break the same way. Slow by design; for
-small scenes only.
+:mod:`blend`) but shares no code with them (only the near and far planes, from
+:mod:`camera`): the EWA Jacobian here comes from central differences of
+:func:`project`, every pixel looks at every Gaussian (no tiles), and everything is
+float64 except the depth sort key, which is rounded to float32 as in the kernels so
+that ties break the same way. Slow by design; for small scenes only.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-NEAR = 0.01
-FAR = 100.0
+from .camera import FAR, NEAR  # the one definition of the near and far planes (m)
+
 COV2D_BLUR = 0.3
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99

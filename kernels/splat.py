@@ -18,14 +18,12 @@ import numpy as np
 import warp as wp
 
 from .blend import blend_backward_kernel, blend_kernel, gather_splats_kernel, splat_record
-from .camera import Camera
+from .camera import FAR, NEAR, Camera
 from .launch import cpu_workers, run_row_bands
 from .projection import project_gaussians_backward_kernel, project_gaussians_kernel
 from .se3 import vec6
 from .tiles import TILE_SIZE, count_tiles_kernel, tile_ranges_kernel, write_tile_keys_kernel
 
-NEAR = 0.01  # m, DESIGN.md
-FAR = 100.0  # m
 
 @dataclass
 class Gaussians:
