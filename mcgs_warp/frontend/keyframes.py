@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Default keyframe threshold (full-resolution px of mean flow), the tuned value the system
+#: runs with (``mcgs_warp.system.config.TrackingConfig.keyframe_flow_px`` takes it from here).
+THRESHOLD_PX = 10.0
+
 
 class KeyframeSelector:
-    def __init__(self, flow, threshold: float = 12.0, scale: float = 0.5):
+    def __init__(self, flow, threshold: float = THRESHOLD_PX, scale: float = 0.5):
         self.flow = flow  # an object with .flow(image_a, image_b) -> (flow [H,W,2], confidence [H,W])
         self.threshold = threshold
         self.scale = scale

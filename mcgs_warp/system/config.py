@@ -1,7 +1,8 @@
 """Run configuration: YAML sections mapped onto dataclasses, every key validated.
 
-Defaults live here and in ``configs/*.yaml`` (one place each: the YAML files only
-override what they name)."""
+The defaults live here, one line each with its meaning and unit; the solver defaults come
+from the stages that use them (``MCBAConfig``, the keyframe selector, ``MappingConfig``),
+so the tuned values are written once. ``configs/*.yaml`` hold only what a run changes."""
 
 from __future__ import annotations
 
@@ -9,45 +10,49 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..ba.mcba import MCBAConfig
 from ..errors import InputError
+from ..frontend.keyframes import THRESHOLD_PX
 from ..mapping.mapper import MappingConfig
 
 
 @dataclass
 class TrackingConfig:
-    stride: int = 8
-    window: int = 8
-    keyframe_flow_px: float = 10.0
-    temporal_radius: int = 2
-    cross_view: bool = True
-    mcba_iterations: int = 6
-    huber_px: float = 0.1
-    prior_weight: float = 1.0
-    jdsa: bool = True
-    jdsa_rounds: int = 2
+    stride: int = 8  # px: inverse depth and flow live on every 8th pixel (the reduced grid)
+    window: int = 8  # keyframes in the MCBA sliding window
+    keyframe_flow_px: float = THRESHOLD_PX  # full-resolution px: new keyframe when the mean flow since the last exceeds this
+    temporal_radius: int = 2  # keyframes: temporal edges link keyframes up to this far apart
+    cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8)
+    mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
+    huber_px: float = MCBAConfig.huber_delta  # grid px: Huber threshold of the reprojection residuals
+    prior_weight: float = 1.0  # px^2 m^2: weight of a metric depth prior (sensor depth) in inverse depth
+    jdsa: bool = True  # alternate MCBA with the JDSA scale-grid fit (eq. 5)
+    jdsa_rounds: int = 2  # MCBA / JDSA alternations per solve
 
 
 @dataclass
 class MappingRunConfig(MappingConfig):
-    iterations_per_keyframe: int = 15
+    """The mapper's settings (defaults and units in ``MappingConfig``) plus its schedule."""
+
+    iterations_per_keyframe: int = 15  # mapping iterations (Adam steps) after each new keyframe
 
 
 @dataclass
 class RefinementConfig:
-    global_ba_iterations: int = 4
-    iterations: int = 120
-    poses: bool = True
-    exposure: bool = True
+    global_ba_iterations: int = 4  # LM iterations of the offline MCBA over all keyframes (0: none)
+    iterations: int = 120  # joint refinement iterations (Adam steps) of map, poses and exposures
+    poses: bool = True  # refine the rig poses through the renderer
+    exposure: bool = True  # fit a per-image affine colour (gain, bias)
 
 
 @dataclass
 class OutputConfig:
-    renders: int = 4
+    renders: int = 4  # keyframes rendered beside their input images
 
 
 @dataclass
 class RunConfig:
-    seed: int = 0
+    seed: int = 0  # random seed of the mapper (runs are deterministic for a seed)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingRunConfig = field(default_factory=MappingRunConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
