@@ -53,6 +53,24 @@ def move_anchored_kernel(
 
 
 @wp.kernel
+def scale_anchored_kernel(
+    means: wp.array(dtype=wp.vec3),
+    log_scales: wp.array(dtype=wp.vec3),
+    anchors: wp.array(dtype=wp.int32),
+    keyframe: int,
+    centre: wp.vec3,  # world position the scale change is about (the keyframe's rig origin)
+    scale: float,
+):
+    """Eq. 13: Gaussians anchored to ``keyframe`` follow a depth-scale change ``s`` of
+    that keyframe: positions move along their rays from ``centre``, sizes scale by ``s``."""
+    i = wp.tid()
+    if anchors[i] != keyframe:
+        return
+    means[i] = centre + scale * (means[i] - centre)
+    log_scales[i] = log_scales[i] + wp.vec3(wp.log(scale))
+
+
+@wp.kernel
 def isotropy_loss_kernel(
     log_scales: wp.array(dtype=wp.vec3),
     weight: float,

@@ -61,6 +61,7 @@ class KeyframeBuffer:
         self.poses = wp.zeros(capacity, dtype=wp.transform, device=self.device)  # T_w_b
         self.disp = wp.zeros((capacity, C, self.h, self.w), dtype=float, device=self.device)
         self.depth_prior = np.zeros((capacity, C, self.h, self.w), dtype=np.float32)  # m, 0 = none
+        self.prior_conf = np.ones((capacity, C, self.h, self.w), dtype=np.float32)  # its weight in [0,1]
         self.scales = np.ones((capacity, C) + tuple(scale_grid))  # JDSA scale grids
         self.timestamps: list[float] = []
         self.frame_index: list[int] = []
@@ -69,8 +70,9 @@ class KeyframeBuffer:
     def __len__(self) -> int:
         return len(self.timestamps)
 
-    def add(self, frame_index: int, timestamp: float, images, T_w_b, disp, depth_prior=None) -> int:
-        """Append a keyframe: ``disp`` [C,h,w] inverse depth (1/m), ``depth_prior`` [C,h,w] (m, 0 = none)."""
+    def add(self, frame_index: int, timestamp: float, images, T_w_b, disp, depth_prior=None, prior_conf=None) -> int:
+        """Append a keyframe: ``disp`` [C,h,w] inverse depth (1/m), ``depth_prior`` [C,h,w] (m, 0 = none)
+        and its confidence ``prior_conf`` [C,h,w] in [0,1] (default: 1 where there is a prior)."""
         k = len(self)
         if k >= self.capacity:
             raise RuntimeError(f"keyframe buffer full ({self.capacity} keyframes)")
@@ -81,6 +83,7 @@ class KeyframeBuffer:
         self.disp[k].assign(np.asarray(disp, dtype=np.float32))
         if depth_prior is not None:
             self.depth_prior[k] = depth_prior
+            self.prior_conf[k] = 1.0 if prior_conf is None else prior_conf
         return k
 
     def get_poses(self) -> np.ndarray:

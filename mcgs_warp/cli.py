@@ -12,6 +12,11 @@ import sys
 from . import __version__
 
 
+DEPTH_KINDS = ("exact", "mono", "none")
+DEPTH_HELP = ("depth written beside the images: exact (ray-cast), mono (monocular-style: a smooth 0.8-1.25 scale "
+              "field, noise, blurred edges; JDSA rescales it) or none; the exact depth always goes to gt/ for evaluation")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mcgs-slam",
@@ -32,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--cameras", type=int, default=3, help="number of rig cameras, 1-4 (default 3: front, left, right)")
     synth.add_argument("--frames", type=int, default=40, help="number of frames (default 40, at 10 Hz)")
     synth.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    synth.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
     synth.set_defaults(func=cmd_synth)
 
     demo = sub.add_parser(
@@ -43,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", required=True, help="output folder")
     demo.add_argument("--frames", type=int, default=40, help="number of frames (default 40)")
     demo.add_argument("--cameras", type=int, default=3, help="number of rig cameras (default 3)")
+    demo.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC or TUM RGB-D)")
@@ -50,6 +57,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
     run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
+    run.add_argument("--depth", choices=("auto", "sensor", "stereo", "none"), default=None,
+                     help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
+                     "cameras, then temporal views), none, or auto (default: sensor when every frame has depth, "
+                     "else stereo when cameras overlap, else none)")
+    run.add_argument("--correspondences", choices=("estimated", "ground-truth"), default=None,
+                     help="estimated (default) or ground-truth: exact correspondences from the sequence's gt/ depth "
+                     "and groundtruth.txt (synthetic sequences), to measure the back end without the front end")
     run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
     run.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
     run.set_defaults(func=cmd_run)
@@ -74,8 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
 def cmd_synth(args) -> int:
     from .data.synthetic import generate
 
-    seq = generate(args.out, n_cameras=args.cameras, n_frames=args.frames, seed=args.seed, device=args.device)
-    print(f"wrote {len(seq)} frames x {len(seq.rig)} cameras to {args.out}")
+    seq = generate(args.out, n_cameras=args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth)
+    print(f"wrote {len(seq)} frames x {len(seq.rig)} cameras to {args.out} (depth: {args.depth})")
     return 0
 
 
@@ -94,7 +108,7 @@ def cmd_demo(args) -> int:
     from .system.run import run_sequence
 
     out = Path(args.out)
-    generate(out / "data", n_cameras=args.cameras, n_frames=args.frames, seed=0, device=args.device)
+    generate(out / "data", n_cameras=args.cameras, n_frames=args.frames, seed=0, device=args.device, depth=args.depth)
     metrics = run_sequence(out / "data", out / "run", packaged_config("synthetic.yaml"), device=args.device)
     print(f"demo finished; outputs in {out / 'run'}")
     _print_metrics(metrics)
@@ -115,7 +129,7 @@ def parse_cameras(text):
 def cmd_run(args) -> int:
     from .system.run import run_sequence
 
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), jdsa=False if args.no_jdsa else None, device=args.device, resume=args.resume)
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume)
     print(f"run finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0

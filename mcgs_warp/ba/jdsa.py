@@ -66,7 +66,7 @@ def update_scales(buffer, keyframes) -> None:
         for c in range(len(buffer.rig)):
             d = disp[k, c].astype(np.float64)
             depth = np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
-            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:])
+            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:], weight=buffer.prior_conf[k, c])
 
 
 def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None):

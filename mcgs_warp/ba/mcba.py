@@ -74,7 +74,8 @@ class MCBA:
         )
 
     def prior_target(self, keyframes) -> tuple[np.ndarray, np.ndarray]:
-        """Inverse-depth prior [k,C,h,w] of ``keyframes`` (JDSA-scaled) and its mask."""
+        """Inverse-depth prior [k,C,h,w] of ``keyframes`` (JDSA-scaled) and its per-pixel
+        weight (the prior's confidence, 0 where it has no depth)."""
         from .jdsa import scale_field
 
         buf = self.buf
@@ -82,7 +83,7 @@ class MCBA:
         field_ = np.array([[scale_field(buf.scales[k, c], buf.h, buf.w) for c in range(len(buf.rig))] for k in keyframes])
         scaled = prior * field_
         mask = scaled > 0
-        return np.where(mask, 1.0 / np.where(mask, scaled, 1.0), 0.0), mask
+        return np.where(mask, 1.0 / np.where(mask, scaled, 1.0), 0.0), mask * buf.prior_conf[keyframes]
 
     def cost(self, edge_arrays, n_edges: int, disp=None, poses=None, prior=None) -> float:
         """Robust reprojection cost plus the prior cost at the given (or current) state."""

@@ -10,6 +10,10 @@ Our folder format::
     cam<i>/rgb/<index>.png     colour, index zero-padded to 6 digits (000000.png)
     cam<i>/depth/<index>.png   optional: 16-bit depth in millimetres (0 = none)
     groundtruth.txt            optional: rig body poses T_w_b, TUM format
+    metadata.yaml              optional: ``depth: exact | mono | none`` (default exact):
+                               whether cam<i>/depth is exact sensor depth or an inexact
+                               monocular-style prior (JDSA rescales it)
+    gt/cam<i>/depth/<index>.png  optional: exact depth, read only for evaluation
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ from ..rig import Rig, load_rig, save_rig
 from .trajectory import Trajectory, read_tum, write_tum
 
 DEPTH_SCALE_MM = 1000.0  # our depth PNGs: uint16 millimetres
+METADATA = "metadata.yaml"  # what the folder's depth is: exact | mono | none
+DEPTH_KINDS = ("exact", "mono", "none")
 MAX_UNMATCHED_FRACTION = 0.10  # readers: more frames than this without a partner is worth a word
 
 
@@ -51,6 +57,19 @@ class Sequence:
     timestamps: np.ndarray  # [K] s
     groundtruth: Trajectory | None = None  # rig body poses T_w_b
     name: str = ""
+    #: whether the frames' depth is exact sensor depth (else an inexact prior that JDSA rescales)
+    depth_exact: bool = True
+
+    def depth_cameras(self) -> list[bool]:
+        """Per camera: does every frame carry depth for it? (Readers check their files;
+        depth on some frames only is an error there, never a silent mode switch.)"""
+        return [d is not None for d in self[0].depths]
+
+    def gt_depths(self, k: int) -> list | None:
+        """Exact depth of frame ``k`` per camera [H,W] (m), for evaluation and oracle
+        correspondences only, or ``None`` where the sequence has none. Never used by
+        tracking or mapping."""
+        return None
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -83,9 +102,19 @@ class CameraSubset(Sequence):
         self.rig = seq.rig.subset(cameras)
         self.timestamps, self.groundtruth, self.name = seq.timestamps, seq.groundtruth, seq.name
 
+        self.depth_exact = seq.depth_exact
+
     def load_frame(self, k: int) -> Frame:
         f = self.seq[k]
         return Frame(f.index, f.timestamp, [f.images[c] for c in self.cameras], [f.depths[c] for c in self.cameras])
+
+    def depth_cameras(self) -> list[bool]:
+        has = self.seq.depth_cameras()
+        return [has[c] for c in self.cameras]
+
+    def gt_depths(self, k: int) -> list | None:
+        d = self.seq.gt_depths(k)
+        return None if d is None else [d[c] for c in self.cameras]
 
 
 def read_timestamps(path) -> np.ndarray:
@@ -127,6 +156,8 @@ class FolderSequence(Sequence):
             raise InputError(self.root, None, "sequence folder not found")
         self.name = self.root.name
         self.rig = load_rig(self.root / "rig.yaml")
+        self.depth_exact = read_metadata(self.root) != "mono"
+        self.has_gt_depth = all((self.root / "gt" / f"cam{i}" / "depth").is_dir() for i in range(len(self.rig)))
         self.timestamps = read_timestamps(self.root / "timestamps.txt")
         self.has_depth = []
         for i in range(len(self.rig)):
@@ -184,24 +215,46 @@ class FolderSequence(Sequence):
                 depths.append(None)
         return Frame(k, float(self.timestamps[k]), images, depths)
 
+    def depth_cameras(self) -> list[bool]:
+        return list(self.has_depth)
+
+    def gt_depths(self, k: int) -> list | None:
+        """``gt/cam<i>/depth`` when present, else the frame's depth where it is exact."""
+        from ..io import read_image
+
+        if self.has_gt_depth:
+            return [read_image(self.root / "gt" / f"cam{i}" / "depth" / frame_name(k), (c.width, c.height), depth=True).astype(np.float32) / DEPTH_SCALE_MM for i, c in enumerate(self.rig.cameras)]
+        if self.depth_exact and all(self.has_depth):
+            return list(self.load_frame(k).depths)
+        return None
+
 
 class FolderWriter:
-    """Writes frames in our folder format (atomically, file by file)."""
+    """Writes frames in our folder format (atomically, file by file).
 
-    def __init__(self, root, rig: Rig):
+    ``depth_kind`` says what ``cam<i>/depth`` holds (written to ``metadata.yaml``):
+    ``exact`` (sensor depth, used as is), ``mono`` (an inexact monocular-style prior that
+    JDSA rescales) or ``none`` (no depth folder). Exact depth for evaluation only goes to
+    ``gt/cam<i>/depth``."""
+
+    def __init__(self, root, rig: Rig, depth_kind: str = "exact"):
+        if depth_kind not in DEPTH_KINDS:
+            raise ValueError(f"depth_kind: expected one of {DEPTH_KINDS}, got {depth_kind!r}")
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self.rig = rig
+        self.depth_kind = depth_kind
         save_rig(rig, self.root / "rig.yaml")
 
-    def write_frame(self, k: int, images, depths=None) -> None:
+    def write_frame(self, k: int, images, depths=None, gt_depths=None) -> None:
         from ..io import write_image
 
         for i, img in enumerate(images):
             write_image(self.root / f"cam{i}" / "rgb" / frame_name(k), img)
             if depths is not None and depths[i] is not None:
-                mm = np.clip(np.round(np.asarray(depths[i]) * DEPTH_SCALE_MM), 0, 65535).astype(np.uint16)
-                write_image(self.root / f"cam{i}" / "depth" / frame_name(k), mm)
+                write_image(self.root / f"cam{i}" / "depth" / frame_name(k), depth_to_mm(depths[i]))
+            if gt_depths is not None and gt_depths[i] is not None:
+                write_image(self.root / "gt" / f"cam{i}" / "depth" / frame_name(k), depth_to_mm(gt_depths[i]))
 
     def finish(self, timestamps, groundtruth: Trajectory | None = None) -> None:
         from ..io import atomic_write
@@ -210,3 +263,31 @@ class FolderWriter:
             f.writelines(f"{t:.9f}\n" for t in timestamps)
         if groundtruth is not None:
             write_tum(self.root / "groundtruth.txt", groundtruth)
+        with atomic_write(self.root / METADATA) as f:
+            f.write(f"# What this folder's depth is (mcgs_warp.data.sequence). exact: sensor depth, used as is;\n"
+                    f"# mono: an inexact monocular-style prior that JDSA rescales; none: no depth.\n"
+                    f"# gt/cam<i>/depth (if present) holds exact depth for evaluation only.\ndepth: {self.depth_kind}\n")
+
+
+def depth_to_mm(depth) -> np.ndarray:
+    """Depth [H,W] in m as our uint16 millimetre PNG values (0 = none)."""
+    return np.clip(np.round(np.asarray(depth) * DEPTH_SCALE_MM), 0, 65535).astype(np.uint16)
+
+
+def read_metadata(root: Path) -> str:
+    """The folder's depth kind from ``metadata.yaml`` (``exact`` when the file is absent)."""
+    from ..rig import load_yaml
+
+    path = Path(root) / METADATA
+    if not path.is_file():
+        return "exact"
+    data = load_yaml(path) or {}
+    if not isinstance(data, dict):
+        raise InputError(path, None, f"expected a mapping, got {type(data).__name__}")
+    unknown = sorted(set(data) - {"depth"})
+    if unknown:
+        raise InputError(path, unknown[0], "unknown key (expected: depth)")
+    kind = data.get("depth", "exact")
+    if kind not in DEPTH_KINDS:
+        raise InputError(path, "depth", f"expected one of {' | '.join(DEPTH_KINDS)}, got {kind!r}")
+    return kind

@@ -3,6 +3,8 @@
 A rig (``configs/rig_synthetic.yaml``: front pinhole, left fisheye, right pinhole,
 back pinhole) drives down a textured room of boxes and spheres; a Warp ray caster
 (:mod:`mcgs_warp.kernels.raycast`) renders colour and exact depth for every camera.
+The depth a run sees is a choice (``exact``, ``mono``-like or ``none``); the exact
+depth always lands under ``gt/`` for evaluation.
 World and body frames: x forward, y left, z up (m). Deterministic for a seed.
 """
 
@@ -134,21 +136,42 @@ class SceneRenderer:
         return color.numpy(), depth.numpy()
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True) -> FolderSequence:
-    """Write the synthetic sequence to ``out`` in our folder format and open it."""
+def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A depth map [H,W] (m) that behaves like a monocular network's: the exact depth with
+    blurred edges, times a smooth random scale field between 0.8 and 1.25 (bilinear over a
+    3x3 grid, so a JDSA grid can represent it), plus 2 % multiplicative noise."""
+    import cv2
+
+    h, w = depth.shape
+    valid = depth > 0
+    blurred = cv2.GaussianBlur(depth.astype(np.float32), (0, 0), 2.0)
+    coarse = np.exp(rng.uniform(np.log(0.8), np.log(1.25), (3, 3))).astype(np.float32)
+    field = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    noise = 1.0 + 0.02 * rng.standard_normal((h, w)).astype(np.float32)
+    return np.where(valid, blurred * field * noise, 0.0).astype(np.float32)
+
+
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact") -> FolderSequence:
+    """Write the synthetic sequence to ``out`` in our folder format and open it.
+
+    ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
+    monocular-style prior, :func:`mono_like_depth`) or ``none`` (no depth folder). The
+    exact depth always goes to ``gt/cam<i>/depth`` for evaluation; ``metadata.yaml``
+    records the kind."""
     if n_frames < 2:
         raise InputError(None, "--frames", f"expected at least 2, got {n_frames}")
+    if depth not in ("exact", "mono", "none"):
+        raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
     rig = synthetic_rig(n_cameras)
     traj = rig_trajectory(n_frames)
     renderer = SceneRenderer(build_scene(seed, device), rig, device=device)
-    writer = FolderWriter(out, rig)
+    writer = FolderWriter(out, rig, depth_kind=depth)
+    rng = np.random.default_rng(1000 + seed)
     for k in range(n_frames):
-        color, depth = renderer.render(traj.poses[k])
-        writer.write_frame(
-            k,
-            [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)],
-            [depth[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)],
-        )
+        color, exact = renderer.render(traj.poses[k])
+        exact = [exact[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
+        seen = {"exact": exact, "mono": [mono_like_depth(d, rng) for d in exact], "none": None}[depth]
+        writer.write_frame(k, [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)], seen, gt_depths=exact)
         if progress and ((k + 1) % 10 == 0 or k + 1 == n_frames):
             print(f"\rsynth: {k + 1}/{n_frames} frames x {n_cameras} cameras", end="", file=sys.stderr, flush=True)
     if progress:

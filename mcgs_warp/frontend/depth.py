@@ -1,17 +1,22 @@
 """Depth priors per keyframe view, behind a small interface.
 
 A :class:`DepthPrior` gives, for a frame, one full-resolution depth map per camera
-(m, camera-model depth, 0 = unknown) or ``None`` where it has nothing. MCBA uses the
+(m, camera-model depth, 0 = unknown) or ``None`` where it has nothing, and a per-pixel
+confidence in [0, 1] that weights it in MCBA and JDSA. MCBA uses the
 prior sampled on the reduced grid (:func:`grid_depth`) both to initialize inverse
 depth and, JDSA-scaled, as a soft prior.
 
-* :class:`SensorDepth` — the dataset's depth (RGB-D, synthetic): metric and exact, so
-  JDSA leaves it unscaled.
-* :class:`ConstantDepth` — no depth sensor: a constant initial depth, as DROID-SLAM
-  starts from; the scale then comes from cross-view edges (known baselines).
-* a monocular network (the paper's Metric3D) would be a third implementation (metric,
-  not exact: JDSA rescales it); none is bundled because nothing may download weights
-  at run time.
+* :class:`SensorDepth` — the dataset's depth: exact sensor depth (RGB-D, synthetic
+  ``exact``) is used as is; an inexact one (a folder whose ``metadata.yaml`` says
+  ``depth: mono``, e.g. a monocular network's output) is a prior that JDSA rescales.
+* :class:`StereoDepth` — sweep stereo between overlapping rig cameras: metric, inexact,
+  with a per-pixel confidence; JDSA rescales it.
+* :class:`NoDepth` — nothing: MCBA's depth starts from a constant and the scale comes
+  from cross-view edges (known baselines).
+* a monocular network (the paper's Metric3D) plugs in as another implementation
+  (metric, not exact); none is bundled because nothing may download weights at run time.
+
+:func:`choose_prior` maps ``tracking.depth`` (``auto | sensor | stereo | none``) onto these.
 """
 
 from __future__ import annotations
@@ -27,31 +32,81 @@ class DepthPrior:
     #: whether it is exact up to noise (sensor depth): then JDSA must not rescale it, or
     #: the scale grids would follow MCBA's depths and free the metric scale
     exact: bool = False
+    #: what a run reports as its depth source
+    name: str = ""
 
     def __call__(self, frame, rig) -> list:
-        raise NotImplementedError
+        """Per camera: depth [H,W] (m, 0 = unknown) or ``None``."""
+        return self.with_confidence(frame, rig)[0]
+
+    def with_confidence(self, frame, rig) -> tuple[list, list]:
+        """Per camera: depth [H,W] and confidence [H,W] in [0,1] (or ``None`` both)."""
+        depths = self(frame, rig)
+        return depths, [None if d is None else (d > 0).astype(np.float32) for d in depths]
 
 
 class SensorDepth(DepthPrior):
+    """The sequence's own depth: exact sensor depth, or (``exact=False``) an inexact
+    prior such as a monocular network's output that JDSA rescales."""
+
     metric = True
-    exact = True
+
+    def __init__(self, exact: bool = True):
+        self.exact = exact
+        self.name = "sensor" if exact else "sensor (inexact prior)"
 
     def __call__(self, frame, rig) -> list:
         return list(frame.depths)
 
 
-class ConstantDepth(DepthPrior):
-    def __init__(self, depth: float = 3.0):
-        self.depth = depth
+class NoDepth(DepthPrior):
+    """No depth at all: MCBA starts from a constant and the rig's baselines give the scale."""
+
+    name = "none"
 
     def __call__(self, frame, rig) -> list:
-        return [np.full((c.height, c.width), self.depth, np.float32) for c in rig.cameras]
+        return [None] * len(rig)
 
 
-def default_prior(sequence) -> DepthPrior:
-    """Sensor depth when the first frame has any, else a constant initialization."""
-    first = sequence[0]
-    return SensorDepth() if any(d is not None for d in first.depths) else ConstantDepth()
+class StereoDepth(DepthPrior):
+    """Sweep stereo between overlapping cameras of the rig at the frame's timestamp
+    (:class:`~mcgs_warp.frontend.stereo.RigStereo`): metric, inexact, confident only
+    where the views overlap and have texture."""
+
+    metric = True
+    name = "stereo"
+
+    def __init__(self, stereo):
+        self.stereo = stereo
+
+    def with_confidence(self, frame, rig) -> tuple[list, list]:
+        return self.stereo.depth(frame.index, frame.images)
+
+
+def choose_prior(sequence, mode: str, stereo_factory) -> DepthPrior:
+    """The depth source for ``mode`` (``auto | sensor | stereo | none``, see
+    ``tracking.depth``). ``auto``: the sequence's depth when every camera has it on every
+    frame, else stereo when two cameras overlap, else none. ``stereo_factory()`` builds
+    the :class:`RigStereo` (``None`` when no two cameras overlap)."""
+    from ..errors import InputError
+
+    has = sequence.depth_cameras()
+    names = [c.name for c in sequence.rig.cameras]
+    if mode == "auto" and any(has) and not all(has):
+        with_depth = ", ".join(n for n, h in zip(names, has) if h)
+        raise InputError(None, "--depth", f"the sequence has depth for some cameras only ({with_depth}); choose --depth sensor after adding the rest, or --depth stereo / none to ignore it")
+    if mode == "sensor" or (mode == "auto" and all(has)):
+        if not all(has):
+            missing = ", ".join(n for n, h in zip(names, has) if not h)
+            raise InputError(None, "--depth", f"sensor: the sequence has no depth for camera(s) {missing}")
+        return SensorDepth(exact=sequence.depth_exact)
+    if mode in ("stereo", "auto"):
+        stereo = stereo_factory()
+        if stereo is not None:
+            return StereoDepth(stereo)
+        if mode == "stereo":
+            raise InputError(None, "--depth", "stereo: no two cameras of the rig overlap (see camera_overlap); use --depth none")
+    return NoDepth()
 
 
 def grid_depth(depths, rig, stride: int, shape) -> np.ndarray:

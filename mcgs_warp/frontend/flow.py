@@ -82,6 +82,21 @@ class DISFlow(FlowProvider):
         return targets, weights
 
 
+def project_grid_depth(buffer: KeyframeBuffer, ci: int, z: np.ndarray, T_cj_ci: np.ndarray, cj: int):
+    """Full-resolution pixels [h*w,2] of view cj seen at the reduced-grid pixels of view ci
+    with depth ``z`` [h,w] (m, 0 = none), and whether each lands inside view cj."""
+    from ..kernels import reference
+
+    h, w = z.shape
+    X = buffer.rays.numpy()[ci, :h, :w].astype(np.float64) * z[..., None]
+    Xj = X.reshape(-1, 3) @ T_cj_ci[:3, :3].T + T_cj_ci[:3, 3]
+    cam = buffer.rig.cameras[cj].warp_camera()
+    ok = (z.reshape(-1) > 0) & reference.in_domain(cam, Xj)
+    p = reference.project(cam, np.where(ok[:, None], Xj, [0.0, 0.0, 1.0]))
+    inside = ok & (p[:, 0] >= 0) & (p[:, 0] <= cam.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= cam.height - 1)
+    return p, inside, Xj
+
+
 class GroundTruthFlow(FlowProvider):
     """Exact correspondences from full-resolution depth maps and poses.
 
@@ -92,33 +107,152 @@ class GroundTruthFlow(FlowProvider):
 
     def __init__(self, depths, T_w_b: np.ndarray, rel_tol: float = 0.02):
         self.depths = depths
-        self.T_w_b = np.asarray(T_w_b, dtype=np.float64)
+        self.T_w_b = None if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
         self.rel_tol = rel_tol
+
+    def depths_of(self, buffer: KeyframeBuffer, k: int) -> list:
+        return self.depths[k]
+
+    def pose_of(self, buffer: KeyframeBuffer, k: int) -> np.ndarray:
+        return self.T_w_b[k]
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
         from ..kernels import reference
 
         E, s = len(edges), buffer.stride
-        rays = buffer.rays.numpy().astype(np.float64)
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
-        full_cams = [c.warp_camera() for c in buffer.rig.cameras]
         for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
             spec_i = buffer.rig.cameras[ci]
             uv = grid_pixels(spec_i, s)
             h, w = uv.shape[:2]
-            z = self.depths[i][ci][uv[..., 1].astype(int), uv[..., 0].astype(int)].astype(np.float64)
-            X = rays[ci, :h, :w] * z[..., None]
-            T = np.linalg.inv(self.T_w_b[j] @ buffer.rig.cameras[cj].T_b_c) @ self.T_w_b[i] @ spec_i.T_b_c
-            Xj = X.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
-            cam = full_cams[cj]
-            ok = (z.reshape(-1) > 0) & reference.in_domain(cam, Xj)
-            p = reference.project(cam, np.where(ok[:, None], Xj, [0.0, 0.0, 1.0]))
-            inside = ok & (p[:, 0] >= 0) & (p[:, 0] <= cam.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= cam.height - 1)
+            z = self.depths_of(buffer, i)[ci][uv[..., 1].astype(int), uv[..., 0].astype(int)].astype(np.float64)
+            T = np.linalg.inv(self.pose_of(buffer, j) @ buffer.rig.cameras[cj].T_b_c) @ self.pose_of(buffer, i) @ spec_i.T_b_c
+            p, inside, Xj = project_grid_depth(buffer, ci, z, T, cj)
             pr = np.round(np.where(inside[:, None], p, 0)).astype(int)
-            seen = self.depths[j][cj][pr[:, 1], pr[:, 0]]
-            pred = reference.depth(cam, Xj)
+            seen = self.depths_of(buffer, j)[cj][pr[:, 1], pr[:, 0]]
+            pred = reference.depth(buffer.rig.cameras[cj].warp_camera(), Xj)
             visible = inside & (np.abs(seen - pred) <= self.rel_tol * pred)
             targets[e, :h, :w] = to_reduced(p, s).reshape(h, w, 2)
             weights[e, :h, :w] = visible.reshape(h, w)
+        return targets, weights
+
+
+class SequenceGroundTruthFlow(GroundTruthFlow):
+    """:class:`GroundTruthFlow` for a sequence's keyframes, looked up by frame: the exact
+    depth of ``sequence.gt_depths`` and the poses of ``sequence.groundtruth`` (the
+    ``--correspondences ground-truth`` oracle; only relative poses enter, so the
+    ground truth's world frame does not matter)."""
+
+    def __init__(self, sequence, rel_tol: float = 0.02, max_dt: float = 0.02):
+        from ..errors import InputError
+
+        where = getattr(sequence, "root", None) or sequence.name or "the sequence"
+        if sequence.groundtruth is None:
+            raise InputError(where, None, "--correspondences ground-truth needs ground-truth poses (groundtruth.txt); this sequence has none")
+        if sequence.gt_depths(0) is None:
+            raise InputError(where, None, "--correspondences ground-truth needs exact depth (gt/cam<i>/depth, or exact cam<i>/depth); this sequence has none")
+        super().__init__(None, None, rel_tol)
+        self.seq, self.max_dt = sequence, max_dt
+        self._depths: dict = {}
+
+    def depths_of(self, buffer, k):
+        f = buffer.frame_index[k]
+        if f not in self._depths:
+            self._depths[f] = self.seq.gt_depths(f)
+        return self._depths[f]
+
+    def pose_of(self, buffer, k):
+        from ..errors import InputError
+
+        gt = self.seq.groundtruth
+        t = buffer.timestamps[k]
+        n = int(np.argmin(np.abs(gt.timestamps - t)))
+        if abs(gt.timestamps[n] - t) > self.max_dt:
+            raise InputError("groundtruth.txt", None, f"no ground-truth pose within {self.max_dt} s of keyframe time {t:.6f} (needed by --correspondences ground-truth)")
+        return gt.poses[n]
+
+
+class StereoMatches(FlowProvider):
+    """Cross-view correspondences from the rig's sweep stereo: the matched pixel of view
+    (k, b) for each grid pixel of (k, a) is where the sweep's depth puts it (a 1-D search
+    along the epipolar curve, left-right checked), weighted by the sweep's confidence."""
+
+    def __init__(self, stereo):
+        self.stereo = stereo  # mcgs_warp.frontend.stereo.RigStereo
+
+    def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
+        from .stereo import upsample_nearest
+
+        E, s = len(edges), buffer.stride
+        targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
+        weights = np.zeros((E, buffer.h, buffer.w), np.float32)
+        rig = buffer.rig
+        for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
+            if i != j or (ci, cj) not in self.stereo.pairs:
+                continue
+            res = self.stereo.pair_sweeps(buffer.frame_index[i], buffer.images[i])[(ci, cj)]
+            spec = rig.cameras[ci]
+            uv = grid_pixels(spec, s).astype(int)
+            h, w = uv.shape[:2]
+            sc = self.stereo.cfg.scale
+            z = upsample_nearest(res.depth(), spec, sc)[uv[..., 1], uv[..., 0]].astype(np.float64)
+            conf = upsample_nearest(res.confidence.numpy(), spec, sc)[uv[..., 1], uv[..., 0]]
+            T = np.linalg.inv(rig.cameras[cj].T_b_c) @ spec.T_b_c
+            p, inside, _ = project_grid_depth(buffer, ci, z, T, cj)
+            targets[e, :h, :w] = to_reduced(p, s).reshape(h, w, 2)
+            weights[e, :h, :w] = (conf.reshape(-1) * inside).reshape(h, w)
+        return targets, weights
+
+
+class GuidedDIS(FlowProvider):
+    """Correspondences that follow the geometry (the role of the paper's recurrent flow
+    update): each edge's flow is predicted from the current depth of view (i, ci) and the
+    current poses, view (j, cj) is warped into view i by that prediction, and DIS finds
+    only the residual ``r``; the target is the prediction at ``p + r``. Wide baselines,
+    rotations and different camera models reduce to a small residual. Confidence: the
+    residual's forward-backward consistency, zero where the prediction leaves view j."""
+
+    def __init__(self, dis: DISFlow, device=None):
+        self.dis = dis
+        self.device = device
+        self._rays: dict = {}
+
+    def _full_rays(self, buffer, c):
+        from ..kernels.stereo import camera_rays
+
+        if c not in self._rays:
+            self._rays[c] = camera_rays(buffer.rig.cameras[c].warp_camera(), buffer.device)
+        return self._rays[c]
+
+    def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
+        import cv2
+
+        from ..kernels.stereo import reproject
+
+        E, s = len(edges), buffer.stride
+        targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
+        weights = np.zeros((E, buffer.h, buffer.w), np.float32)
+        rig, poses, disp = buffer.rig, buffer.get_poses(), buffer.disp.numpy()
+        for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
+            spec_i, spec_j = rig.cameras[ci], rig.cameras[cj]
+            H, W = spec_i.height, spec_i.width
+            hr, wr = H // s, W // s
+            inv = cv2.resize(disp[i, ci, :hr, :wr], (wr * s, hr * s), interpolation=cv2.INTER_LINEAR)
+            known = cv2.resize((disp[i, ci, :hr, :wr] > 0).astype(np.float32), (wr * s, hr * s), interpolation=cv2.INTER_LINEAR) > 0.999
+            full = np.zeros((H, W), np.float32)
+            full[: hr * s, : wr * s] = np.where(known, inv, 0.0)
+            T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
+            pred = reproject(self._full_rays(buffer, ci), full, T, spec_j.warp_camera(), buffer.device)
+            mx = np.nan_to_num(pred[..., 0], nan=-1e4).astype(np.float32)
+            my = np.nan_to_num(pred[..., 1], nan=-1e4).astype(np.float32)
+            warped = cv2.remap(buffer.images[j][cj], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            flow, conf = self.dis.flow(buffer.images[i][ci], warped)
+            uv = grid_pixels(spec_i, s).astype(np.float32)
+            ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
+            q = uv + flow[vi, ui]
+            t = np.stack([cv2.remap(m, q[..., 0], q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1e4) for m in (mx, my)], -1)
+            ok = (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
+            targets[e, :hr, :wr] = to_reduced(t.astype(np.float64), s)
+            weights[e, :hr, :wr] = conf[vi, ui] * ok
         return targets, weights

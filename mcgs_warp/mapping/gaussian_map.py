@@ -118,6 +118,18 @@ class GaussianMap:
             device=self.device,
         )
 
+    def scale_anchored(self, keyframe: int, T_w_b: np.ndarray, scale: float) -> None:
+        """Eq. 13: scale the Gaussians anchored to ``keyframe`` by ``scale`` about its rig
+        origin (positions and sizes), after its depth was rescaled by that factor."""
+        from ..kernels.mapping import scale_anchored_kernel
+
+        if len(self) == 0:
+            return
+        if self._anchors_dev is None:
+            self._anchors_dev = wp.array(self.anchors, dtype=wp.int32, device=self.device)
+        g = self.gaussians
+        wp.launch(scale_anchored_kernel, dim=len(self), inputs=[g.means, g.log_scales, self._anchors_dev, int(keyframe), wp.vec3(*np.asarray(T_w_b, np.float32)[:3, 3]), float(scale)], device=self.device)
+
     def follow_keyframes(self, old_T_w_b: np.ndarray, new_T_w_b: np.ndarray, scale: float = 1.0) -> None:
         """Move every keyframe's Gaussians from its old to its new rig pose."""
         for k, (A, B) in enumerate(zip(old_T_w_b, new_T_w_b)):

@@ -16,8 +16,17 @@ from ..frontend.keyframes import THRESHOLD_PX
 from ..mapping.mapper import MappingConfig
 
 
+#: allowed values of string options: (section, key) -> choices
+CHOICES = {
+    ("tracking", "depth"): ("auto", "sensor", "stereo", "none"),
+    ("tracking", "correspondences"): ("estimated", "ground-truth"),
+}
+
+
 @dataclass
 class TrackingConfig:
+    depth: str = "auto"  # auto | sensor | stereo | none (see mcgs_warp.frontend.depth.choose_prior)
+    correspondences: str = "estimated"  # estimated | ground-truth (oracle, synthetic sequences only)
     stride: int = 8  # px: inverse depth and flow live on every 8th pixel (the reduced grid)
     window: int = 8  # keyframes in the MCBA sliding window
     keyframe_flow_px: float = THRESHOLD_PX  # full-resolution px: new keyframe when the mean flow since the last exceeds this
@@ -28,6 +37,7 @@ class TrackingConfig:
     prior_weight: float = 1.0  # px^2 m^2: weight of a metric depth prior (sensor depth) in inverse depth
     jdsa: bool = True  # alternate MCBA with the JDSA scale-grid fit (eq. 5)
     jdsa_rounds: int = 2  # MCBA / JDSA alternations per solve
+    flow_rounds: int = 2  # MCBA rounds per keyframe; between them correspondences follow the new geometry
 
 
 @dataclass
@@ -89,6 +99,12 @@ def _fill(cls, data, src, prefix):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value or value < 0:
                 raise InputError(src, name, f"expected a non-negative number, got {value!r}")
             kwargs[key] = float(value)
+        elif isinstance(default, str):
+            choices = CHOICES.get((prefix, key))
+            if not isinstance(value, str) or (choices and value not in choices):
+                expected = " | ".join(choices) if choices else "a string"
+                raise InputError(src, name, f"expected {expected}, got {value!r}")
+            kwargs[key] = value
         else:
             kwargs[key] = value
     return cls(**kwargs)

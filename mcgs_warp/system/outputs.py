@@ -3,8 +3,12 @@
 * ``trajectory.txt`` (rig body ``T_w_b``, TUM) and ``trajectory_<camera>.txt`` (``T_w_c``)
 * ``map.usdc`` (``UsdVol.ParticleField3DGaussianSplat`` + keyframe cameras), ``map.ply`` (3DGS)
 * ``renders/keyframe_<k>_<camera>.png``: input | render | depth, for a few keyframes
-* ``metrics.json``: ATE (Sim(3)-aligned) and path length when ground truth exists, PSNR,
-  SSIM and depth L1 over the keyframe views, counts and timings
+* ``depth/keyframe_<k>_<camera>.png``: every keyframe view's rendered depth, 16-bit
+  millimetres, 0 = none (what RGB-D datasets use)
+* ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned) and path length when ground truth
+  exists, PSNR, SSIM over the keyframe views, depth L1 against the sequence's exact depth
+  (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
+  correspondences used, counts and timings
 * ``plots/trajectory.png`` (top view, estimate vs ground truth), ``plots/mapping.png``
   (loss and PSNR per mapping iteration)
 * ``config.yaml``: the resolved run configuration; ``rig.yaml`` and ``keyframes.txt``
@@ -18,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.sequence import depth_to_mm
 from ..data.trajectory import Trajectory, write_tum
 from ..eval.metrics import psnr, ssim
 from ..eval.plots import plot_mapping, plot_trajectory
@@ -76,8 +81,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         psnrs.append(psnr(col, img))
         ssims.append(ssim(col, img, with_grad=False)[0])
         if fidx not in frames:
-            frames = {fidx: seq[fidx]}  # load each keyframe's frame once
-        sensor = frames[fidx].depths[c]
+            frames = {fidx: seq.gt_depths(fidx)}  # exact depth (evaluation only), loaded once per keyframe
+        sensor = frames[fidx][c] if frames[fidx] is not None else None
+        write_image(out / "depth" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", depth_to_mm(dep))
         if sensor is not None:
             ok = (sensor > 0) & (dep > 0)
             if ok.any():
@@ -92,6 +98,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "psnr_db": float(np.mean(psnrs)),
         "ssim": float(np.mean(ssims)),
         "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
+        "depth_source": slam.prior.name,
+        "jdsa": slam.jdsa_active,
+        "correspondences": slam.cfg.tracking.correspondences,
         "n_gaussians": len(slam.mapper.map),
         "n_keyframes": len(buf),
         "n_frames": len(seq),

@@ -15,7 +15,7 @@ from .slam import SLAM, Progress
 CHECKPOINT = "checkpoint.npz"
 
 
-def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, jdsa: bool | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None) -> dict:
+def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None) -> dict:
     """Run SLAM on the sequence folder ``data`` and write everything to ``out``; returns the
     metrics. The online state is checkpointed to ``out/checkpoint.npz`` after every
     keyframe; ``resume`` continues an interrupted run from it."""
@@ -23,6 +23,10 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
     cfg = config if isinstance(config, RunConfig) else load_run_config(config)
     if jdsa is not None:
         cfg.tracking.jdsa = jdsa
+    if depth is not None:
+        cfg.tracking.depth = depth
+    if correspondences is not None:
+        cfg.tracking.correspondences = correspondences
     seq = open_sequence(data)
     if cameras is not None:
         seq = CameraSubset(seq, cameras)

@@ -19,20 +19,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ..ba.graph import build_edges, camera_overlap, sliding_window
-from ..ba.jdsa import mcba_with_jdsa
+from ..ba.graph import CROSS_VIEW, build_edges, camera_overlap, sliding_window
+from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
 from ..data.trajectory import Trajectory
-from ..frontend.depth import default_prior, grid_depth
-from ..frontend.flow import DISFlow
+from ..frontend.depth import StereoDepth, choose_prior, grid_depth
+from ..frontend.flow import DISFlow, GuidedDIS, SequenceGroundTruthFlow, StereoMatches
+from ..frontend.stereo import RigStereo
 from ..frontend.keyframes import KeyframeSelector
 from ..geometry import matrix_to_quat, quat_to_matrix
 from ..mapping.gaussian_map import GaussianMap
 from ..mapping.mapper import Mapper
 from ..mapping.refine import joint_refinement
 from .config import RunConfig
+
+
+INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
 class Progress:
@@ -76,33 +80,86 @@ class SLAM:
         self.progress = progress or Progress(False)
         self.buf = KeyframeBuffer(sequence.rig, stride=tc.stride, capacity=len(sequence) + 1, device=device)
         self.flow = DISFlow()
+        self.guided = GuidedDIS(self.flow, device=self.buf.device)
         self.selector = KeyframeSelector(self.flow, threshold=tc.keyframe_flow_px)
-        self.prior = default_prior(sequence)
-        self.overlap = camera_overlap(sequence.rig, stride=tc.stride) if tc.cross_view else None
+        rig_overlap = camera_overlap(sequence.rig, stride=tc.stride)
+        self.overlap = rig_overlap if tc.cross_view else None
+        self.stereo = RigStereo(sequence.rig, rig_overlap, device=self.buf.device)
+        self.prior = choose_prior(sequence, tc.depth, lambda: self.stereo if self.stereo.pairs else None)
+        self.oracle = SequenceGroundTruthFlow(sequence) if tc.correspondences == "ground-truth" else None
+        self.stereo_matches = StereoMatches(self.stereo) if self.stereo.pairs else None
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
         self._flows: dict = {}
+        self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
 
+    @property
+    def jdsa_active(self) -> bool:
+        """JDSA runs for metric but inexact priors (stereo, monocular-style); exact sensor
+        depth is used as is (rescaling it to MCBA's depth would free the metric scale)."""
+        return self.cfg.tracking.jdsa and self.prior.metric and not self.prior.exact
+
     # ----------------------------------------------------------------------------------
-    def correspondences(self, edges: np.ndarray):
-        """Flow targets and confidences per edge, computed once per edge and cached."""
-        missing = [e for e in map(tuple, edges[:, :4].tolist()) if e not in self._flows]
-        if missing:
-            t, w = self.flow.correspondences(self.buf, np.array(missing, dtype=np.int32))
-            for e, tt, ww in zip(missing, t, w):
-                self._flows[e] = (tt, ww)
+    def correspondences(self, edges: np.ndarray, refresh=()):
+        """Targets and confidences per edge, cached per edge. Cross-view edges come from
+        the rig's sweep stereo, the others from DIS; edges touching a keyframe in
+        ``refresh`` are re-estimated from the current reprojection (:class:`GuidedDIS`).
+        With ``--correspondences ground-truth`` every edge is exact (oracle)."""
         keys = [tuple(e) for e in edges[:, :4].tolist()]
+        if self.oracle is None and refresh:
+            redo = [k for k in keys if k[0] != k[2] and (k[0] in refresh or k[2] in refresh)]
+            self._compute(redo, self.guided)
+        missing = [k for k in keys if k not in self._flows]
+        if missing:
+            if self.oracle is not None:
+                self._compute(missing, self.oracle)
+            else:
+                cross = [k for k in missing if k[0] == k[2] and self.stereo_matches is not None]
+                self._compute(cross, self.stereo_matches)
+                self._compute([k for k in missing if k not in set(cross)], self.flow)
         return np.stack([self._flows[k][0] for k in keys]), np.stack([self._flows[k][1] for k in keys])
 
-    def _solve(self, edges, keyframes):
-        targets, weights = self.correspondences(edges)
-        before = self.buf.get_poses()
-        if self.cfg.tracking.jdsa and self.prior.metric and not self.prior.exact:
-            mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=self.cfg.tracking.jdsa_rounds)
-        else:
-            self.mcba.solve(edges, targets, weights, keyframes=keyframes)
-        self.mapper.map.follow_keyframes(before, self.buf.get_poses())
+    def _compute(self, keys, provider) -> None:
+        if keys:
+            t, w = provider.correspondences(self.buf, np.array(keys, dtype=np.int32))
+            for e, tt, ww in zip(keys, t, w):
+                self._flows[e] = (tt, ww)
+
+    def _solve(self, edges, keyframes, fresh=()):
+        """MCBA (+ JDSA) over ``keyframes`` in ``flow_rounds`` outer rounds; between rounds
+        the correspondences of edges touching ``fresh`` keyframes follow the new geometry.
+        Anchored Gaussians follow every pose and scale change, and the mapping depth
+        targets are refreshed."""
+        rounds = max(1, self.cfg.tracking.flow_rounds)
+        for r in range(rounds):
+            targets, weights = self.correspondences(edges, refresh=fresh if r > 0 else ())
+            before = self.buf.get_poses()
+            if self.jdsa_active:
+                mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1)
+            else:
+                self.mcba.solve(edges, targets, weights, keyframes=keyframes)
+            self.mapper.map.follow_keyframes(before, self.buf.get_poses())
+        self._follow_depths(keyframes)
+
+    def _follow_depths(self, keyframes) -> None:
+        """Eq. 13 and fresh mapping targets: a mapped keyframe whose depth MCBA/JDSA
+        rescaled takes its Gaussians along (scaled about its rig origin), and its depth
+        targets become the new estimate (unless they are exact sensor depth)."""
+        for k in keyframes:
+            if k not in self.mapper.depths:
+                continue
+            new = self.buf.depth(k)
+            old = self._mapped_depth.get(k)
+            if old is not None:
+                ok = (old > 0) & (new > 0)
+                if ok.any():
+                    s = float(np.median(new[ok] / old[ok]))
+                    if abs(np.log(s)) > 1e-3:
+                        self.mapper.map.scale_anchored(k, self.buf.get_poses()[k], s)
+            self._mapped_depth[k] = new
+            if not (self.prior.metric and self.prior.exact):
+                self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k)
 
     def add_keyframe(self, frame) -> int:
         buf, tc = self.buf, self.cfg.tracking
@@ -113,27 +170,62 @@ class SLAM:
             T_init = poses[-1]
         else:
             T_init = poses[-1] @ np.linalg.inv(poses[-2]) @ poses[-1]  # constant velocity
-        prior = grid_depth(self.prior(frame, self.seq.rig), self.seq.rig, tc.stride, (buf.h, buf.w))
+        depths, confs = self.prior.with_confidence(frame, self.seq.rig)
+        prior = grid_depth(depths, self.seq.rig, tc.stride, (buf.h, buf.w))
+        conf = grid_depth(confs, self.seq.rig, tc.stride, (buf.h, buf.w))
         if (prior > 0).any():
             fill = float(np.median(prior[prior > 0]))
+        elif len(buf):
+            d = buf.depth(len(buf) - 1)
+            fill = float(np.median(d[d > 0])) if (d > 0).any() else INITIAL_DEPTH
         else:
-            fill = 3.0
+            fill = INITIAL_DEPTH
         disp = np.where(prior > 0, 1.0 / np.maximum(prior, 1e-6), 1.0 / fill).astype(np.float32)
-        k = buf.add(frame.index, frame.timestamp, frame.images, T_init, disp, depth_prior=prior if self.prior.metric else None)
+        k = buf.add(frame.index, frame.timestamp, frame.images, T_init, disp, depth_prior=prior if self.prior.metric else None, prior_conf=conf)
         if len(buf) > 1:
             window = sliding_window(len(buf), tc.window)
             edges = build_edges(window, len(self.seq.rig), self.overlap, radius=tc.temporal_radius, cross_view=tc.cross_view)
-            self._solve(edges, window)
+            self._solve(edges, window, fresh=set(window[-tc.temporal_radius - 1 :]))
         return k
 
     def mapping_depths(self, frame, k: int):
-        """Depth targets for mapping: the sensor depth if metric, else MCBA depth upsampled."""
+        """Full-resolution depth targets for mapping: exact sensor depth as is; otherwise
+        the current estimate (MCBA depth, upsampled in inverse depth, where correspondences
+        or a prior constrain it), sharpened by the JDSA-scaled prior where the two agree."""
         import cv2
 
-        if self.prior.metric:
+        if self.prior.metric and self.prior.exact:
             return list(frame.depths)
-        d = self.buf.depth(k)
-        return [cv2.resize(d[c, : s.height // self.buf.stride, : s.width // self.buf.stride], (s.width, s.height), interpolation=cv2.INTER_NEAREST) for c, s in enumerate(self.seq.rig.cameras)]
+        buf, s = self.buf, self.buf.stride
+        disp = buf.disp.numpy()[k]
+        info = self._constrained(k)
+        depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
+        out = []
+        for c, spec in enumerate(self.seq.rig.cameras):
+            h, w = spec.height // s, spec.width // s
+            d = np.where(info[c, :h, :w], disp[c, :h, :w], 0.0).astype(np.float32)
+            up = cv2.resize(d, (w * s, h * s), interpolation=cv2.INTER_LINEAR)
+            known = cv2.resize((d > 0).astype(np.float32), (w * s, h * s), interpolation=cv2.INTER_LINEAR) > 0.999
+            full = np.zeros((spec.height, spec.width), np.float32)
+            full[: h * s, : w * s] = np.where(known, 1.0 / np.maximum(up, 1e-6), 0.0)
+            if depths[c] is not None:
+                sc = cv2.resize(scale_field(buf.scales[k, c], h, w).astype(np.float32), (w * s, h * s), interpolation=cv2.INTER_LINEAR)
+                scaled = np.zeros_like(full)
+                scaled[: h * s, : w * s] = depths[c][: h * s, : w * s] * sc
+                agree = (scaled > 0) & (full > 0) & (np.abs(scaled - full) < 0.1 * full)
+                full = np.where(agree, scaled, full)
+            out.append(full)
+        return out
+
+    def _constrained(self, k: int) -> np.ndarray:
+        """[C,h,w] bool: grid pixels of keyframe k whose depth something measured (an edge
+        from the view with confident correspondences, or a confident prior)."""
+        total = np.array(self.buf.prior_conf[k] > 0.5) if self.prior.metric else np.zeros((len(self.seq.rig), self.buf.h, self.buf.w), bool)
+        weight = np.zeros(total.shape, np.float32)
+        for (i, ci, j, cj), (_t, w) in self._flows.items():
+            if i == k:
+                weight[ci] += w
+        return total | (weight >= 1.0)
 
     # ----------------------------------------------------------------------------------
     def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
@@ -148,10 +240,17 @@ class SLAM:
             poses=buf.poses.numpy()[:K].copy(),
             disp=buf.disp.numpy()[:K].copy(),
             depth_prior=buf.depth_prior[:K].copy(),
+            prior_conf=buf.prior_conf[:K].copy(),
             scales=buf.scales[:K].copy(),
             timestamps=np.array(buf.timestamps),
             frame_index=np.array(buf.frame_index, dtype=np.int64),
             kf_frames=np.array(kf_frames, dtype=np.int64),
+            flow_keys=np.array(list(self._flows), dtype=np.int32).reshape(-1, 4),
+            flow_targets=np.array([v[0] for v in self._flows.values()], dtype=np.float32).reshape(-1, buf.h, buf.w, 2),
+            flow_weights=np.array([v[1] for v in self._flows.values()], dtype=np.float32).reshape(-1, buf.h, buf.w),
+            mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
+            targets=np.array([np.stack(self.mapper.depths[k]) for k in sorted(self._mapped_depth)] if self._deferred_first() else [], dtype=np.float32),
+            mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
             meta=np.array(json.dumps({"next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
         )
         with atomic_write(path, "wb") as f:
@@ -176,10 +275,15 @@ class SLAM:
         buf = self.buf
         for k, fi in enumerate(a["frame_index"]):
             frame = self.seq[int(fi)]
-            buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k])
+            buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
         buf.scales[: len(a["scales"])] = a["scales"]
-        depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
+        self._flows = {tuple(int(v) for v in key): (t, w) for key, t, w in zip(a["flow_keys"], a["flow_targets"], a["flow_weights"])}
+        self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
+        if self._deferred_first():  # estimated targets: restore them as they were
+            depths = {int(k): list(t) for k, t in zip(a["mapped_keys"], a["targets"])}
+        else:
+            depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
         self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
         self.seconds = meta["seconds"]
         return int(meta["next_frame"]), [int(v) for v in a["kf_frames"]]
@@ -209,9 +313,14 @@ class SLAM:
             kf_frames.append(idx)
             last_images = frame.images
             t1 = time.perf_counter()
-            self.mapper.add_keyframe(k, self.mapping_depths(frame, k))
+            # Bootstrap: without exact depth, keyframe 0 waits for the MCBA of keyframe 1,
+            # so that no Gaussian is seeded from the constant start depth.
+            for m in ([0, k] if k == 1 and self._deferred_first() else [] if k == 0 and self._deferred_first() else [k]):
+                self.mapper.add_keyframe(m, self.mapping_depths(self.seq[self.buf.frame_index[m]], m))
+                self._mapped_depth[m] = self.buf.depth(m)
             window = sliding_window(len(self.buf), self.cfg.tracking.window)
-            self.mapper.optimize(mcfg.iterations_per_keyframe, keyframes=window)
+            if self.mapper.depths:
+                self.mapper.optimize(mcfg.iterations_per_keyframe, keyframes=[w for w in window if w in self.mapper.depths])
             t2 = time.perf_counter()
             self.seconds["tracking"] += t1 - t0
             self.seconds["mapping"] += t2 - t1
@@ -226,6 +335,9 @@ class SLAM:
         traj = self.trajectory(kf_frames)
         curve = [(i, r.loss, r.psnr) for i, r in enumerate(self.mapper.history)]
         return RunResult(traj, kf_frames, curve, dict(self.seconds))
+
+    def _deferred_first(self) -> bool:
+        return not (self.prior.metric and self.prior.exact)
 
     def refine(self) -> None:
         rc = self.cfg.refinement

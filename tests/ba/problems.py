@@ -32,7 +32,12 @@ class Problem:
         if not temporal:
             edges = edges[edges[:, 0] == edges[:, 2]]
         self.edges = edges
-        self.targets, self.weights = GroundTruthFlow(depths, self.true_poses).correspondences(self.buf, edges)
+        self.gt_flow = GroundTruthFlow(depths, self.true_poses)
+        self.targets, self.weights = self.gt_flow.correspondences(self.buf, edges)
+
+    def targets_for(self, edges):
+        """Exact correspondences of other ``edges`` [E,>=4] among these keyframes."""
+        return self.gt_flow.correspondences(self.buf, np.asarray(edges))
 
     def perturb(self, rng, trans=0.05, rot_deg=2.0, depth_noise=0.1, depth_scale=1.0, fixed=(0,)):
         T = self.true_poses.copy()

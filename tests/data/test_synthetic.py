@@ -40,7 +40,7 @@ def bilinear(img, uv):
 
 def test_layout_and_ground_truth(seq):
     root = seq.root
-    assert sorted(p.name for p in root.iterdir()) == ["cam0", "cam1", "cam2", "groundtruth.txt", "rig.yaml", "timestamps.txt"]
+    assert sorted(p.name for p in root.iterdir()) == ["cam0", "cam1", "cam2", "groundtruth.txt", "gt", "metadata.yaml", "rig.yaml", "timestamps.txt"]
     for i in range(3):
         assert len(list((root / f"cam{i}" / "rgb").glob("*.png"))) == 5
         assert len(list((root / f"cam{i}" / "depth").glob("*.png"))) == 5
@@ -102,3 +102,27 @@ def test_cli_synth(tmp_path):
     assert len(seq) == 3 and len(seq.rig) == 2
     res = subprocess.run([sys.executable, "-m", "mcgs_warp", "synth", "--out", str(out), "--cameras", "9"], capture_output=True, text=True)
     assert res.returncode == 2 and "--cameras: expected 1 to 4, got 9" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_depth_modes_write_what_they_say(tmp_path):
+    """exact: cam<i>/depth is the exact depth; mono: a smooth 0.8-1.25 rescaling of it
+    (plus noise) and metadata.yaml says so; none: no depth folder. Every mode writes the
+    exact depth under gt/, which the sequence serves for evaluation only."""
+    from mcgs_warp.data import open_sequence
+
+    seqs = {m: generate(tmp_path / m, n_cameras=2, n_frames=2, seed=0, progress=False, depth=m) for m in ("exact", "mono", "none")}
+    gt = seqs["exact"].gt_depths(1)
+    for m, s in seqs.items():
+        np.testing.assert_array_equal(s.gt_depths(1)[0], gt[0])
+        assert (s.root / "metadata.yaml").read_text().strip().endswith(f"depth: {m}")
+    np.testing.assert_array_equal(seqs["exact"][1].depths[1], gt[1])
+    assert seqs["exact"].depth_exact and seqs["exact"].depth_cameras() == [True, True]
+    mono = open_sequence(tmp_path / "mono")
+    assert not mono.depth_exact and mono.depth_cameras() == [True, True]
+    ratio = mono[1].depths[0] / gt[0]
+    inner = ratio[20:-20, 20:-20]  # away from blurred depth edges at the border
+    assert 0.7 < np.percentile(inner, 5) and np.percentile(inner, 95) < 1.35
+    assert np.std(np.log(inner)) > 0.03  # really rescaled, not the exact depth
+    none = open_sequence(tmp_path / "none")
+    assert none.depth_cameras() == [False, False] and none[1].depths == [None, None]
+    assert not (tmp_path / "none" / "cam0" / "depth").exists()

@@ -21,9 +21,13 @@ def small_config():
     return cfg
 
 
-def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path):
+@pytest.mark.parametrize("depth", ["exact", "none"])
+def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, depth):
+    """With exact depth the mapping targets are the sensor's; without depth they are
+    MCBA's estimates (and the correspondences were re-estimated along the way), which
+    the checkpoint must carry."""
     data = tmp_path / "data"
-    generate(data, n_cameras=2, n_frames=7, seed=4, progress=False)
+    generate(data, n_cameras=2, n_frames=7, seed=4, progress=False, depth=depth)
     full = run_sequence(data, tmp_path / "full", small_config(), progress=False)
     with pytest.raises(KeyboardInterrupt):
         run_sequence(data, tmp_path / "cut", small_config(), progress=False, stop_after_keyframes=2)
@@ -36,6 +40,9 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path):
     np.testing.assert_allclose(b.positions, a.positions, atol=1e-6)
     np.testing.assert_allclose(b.poses, a.poses, atol=1e-6)
     assert resumed["n_gaussians"] == full["n_gaussians"]
+    assert resumed["depth_source"] == full["depth_source"] == ("sensor" if depth == "exact" else "stereo")
+    if depth == "exact":
+        return
 
     other = small_config()
     other.mapping.iterations_per_keyframe = 4
