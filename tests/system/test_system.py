@@ -45,11 +45,16 @@ def test_run_writes_every_output(run_dir):
     saved = json.loads((run / "metrics.json").read_text())
     for key in ["ate_rmse_m", "path_length_m", "psnr_db", "ssim", "depth_l1_m", "n_gaussians", "n_keyframes", "seconds_total"]:
         assert saved[key] is not None, key
-    assert saved == metrics
-    assert metrics["n_keyframes"] >= 2 and metrics["n_gaussians"] > 1000
-    assert metrics["ate_rmse_m"] < 0.05 and metrics["psnr_db"] > 18
+    assert metrics["n_keyframes"] >= 3 and metrics["n_gaussians"] > 5000
+    # What this run achieves (about 1.3 mm SE(3) on 0.8 m, scale 1.003, 30 dB), with a margin.
+    assert metrics["ate_se3_rmse_m"] < 0.003 and abs(metrics["sim3_scale"] - 1) < 0.01, metrics
+    assert metrics["psnr_db"] > 27 and metrics["depth_l1_m"] < 0.2, metrics
     traj = read_tum(run / "trajectory.txt")
     assert len(traj) == 6
+    # metrics.json holds what the written trajectory scores against the ground truth
+    gt = read_tum(root / "data" / "groundtruth.txt")
+    assert np.isclose(evaluate(traj, gt)[0].ate_rmse_m, saved["ate_rmse_m"], rtol=1e-6)
+    assert np.isclose(evaluate(traj, gt, with_scale=False)[0].ate_rmse_m, saved["ate_se3_rmse_m"], rtol=1e-6)
     # per-camera trajectories are the rig trajectory composed with the extrinsics
     from mcgs_warp.rig import load_rig
 
