@@ -38,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--frames", type=int, default=40, help="number of frames (default 40, at 10 Hz)")
     synth.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     synth.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
+    synth.add_argument("--trajectory", choices=("forward", "loop"), default="forward",
+                       help="forward (default: down the room with a weave, 1.5 m/s) or loop (one closed loop "
+                       "through the room back to the start, so views are revisited; speed set by --frames)")
     synth.set_defaults(func=cmd_synth)
 
     demo = sub.add_parser(
@@ -88,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cmd_synth(args) -> int:
     from .data.synthetic import generate
 
-    seq = generate(args.out, n_cameras=args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth)
+    seq = generate(args.out, n_cameras=args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth, trajectory=args.trajectory)
     print(f"wrote {len(seq)} frames x {len(seq.rig)} cameras to {args.out} (depth: {args.depth})")
     return 0
 

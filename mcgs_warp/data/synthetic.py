@@ -48,6 +48,37 @@ def rig_trajectory(n_frames: int) -> Trajectory:
     return Trajectory(t, T)
 
 
+LOOP_STRAIGHT = 14.0  # m: the loop's straight legs, along x from x = 0
+LOOP_RADIUS = 1.2  # m: its half-turns (the lane |y| < 1.6 m is free of obstacles)
+
+
+def loop_trajectory(n_frames: int) -> Trajectory:
+    """Rig body poses ``T_w_b`` of one closed loop through the room: out along y = +r,
+    a half-turn, back along y = -r, a half-turn, ending where it started (so the last
+    frames revisit the first views). The speed is set so that ``n_frames`` at 10 Hz
+    complete the loop (160 frames: 2.0 m/s; 640: 0.5 m/s). Heading follows the path."""
+    t = np.arange(n_frames) / FRAME_RATE
+    L, r = LOOP_STRAIGHT, LOOP_RADIUS
+    perimeter = 2 * L + 2 * np.pi * r
+    s = perimeter * np.arange(n_frames) / n_frames  # arc length; frame n would close the loop
+    T = np.zeros((n_frames, 4, 4))
+    T[:, 3, 3] = 1.0
+    for k, sk in enumerate(s):
+        if sk < L:  # outbound, y = +r, heading +x
+            x, y, yaw = sk, r, 0.0
+        elif sk < L + np.pi * r:  # half-turn around (L, 0)
+            a = (sk - L) / r
+            x, y, yaw = L + r * np.sin(a), r * np.cos(a), -a
+        elif sk < 2 * L + np.pi * r:  # back, y = -r, heading -x
+            x, y, yaw = L - (sk - L - np.pi * r), -r, -np.pi
+        else:  # half-turn around (0, 0) back to the start
+            a = (sk - 2 * L - np.pi * r) / r
+            x, y, yaw = -r * np.sin(a), -r * np.cos(a), -np.pi - a
+        T[k, :3, :3] = yaw_pitch_roll(yaw, 0.02 * np.sin(0.7 * sk), 0.0)
+        T[k, :3, 3] = [x, y, 1.4 + 0.05 * np.sin(0.5 * sk)]
+    return Trajectory(t, T)
+
+
 def build_scene(seed: int, device=None):
     """Room, boxes, spheres and materials for ``seed``; returns the Warp ``Scene`` struct."""
     from ..kernels.raycast import Scene
@@ -151,19 +182,22 @@ def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.where(valid, blurred * field * noise, 0.0).astype(np.float32)
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact") -> FolderSequence:
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str = "forward") -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
     ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
     monocular-style prior, :func:`mono_like_depth`) or ``none`` (no depth folder). The
     exact depth always goes to ``gt/cam<i>/depth`` for evaluation; ``metadata.yaml``
-    records the kind."""
+    records the kind. ``trajectory``: ``forward`` (down the room with a weave,
+    :func:`rig_trajectory`) or ``loop`` (one closed loop, :func:`loop_trajectory`)."""
     if n_frames < 2:
         raise InputError(None, "--frames", f"expected at least 2, got {n_frames}")
     if depth not in ("exact", "mono", "none"):
         raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
+    if trajectory not in ("forward", "loop"):
+        raise InputError(None, "--trajectory", f"expected forward or loop, got {trajectory!r}")
     rig = synthetic_rig(n_cameras)
-    traj = rig_trajectory(n_frames)
+    traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
     renderer = SceneRenderer(build_scene(seed, device), rig, device=device)
     writer = FolderWriter(out, rig, depth_kind=depth)
     rng = np.random.default_rng(1000 + seed)

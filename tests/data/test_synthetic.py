@@ -126,3 +126,22 @@ def test_depth_modes_write_what_they_say(tmp_path):
     none = open_sequence(tmp_path / "none")
     assert none.depth_cameras() == [False, False] and none[1].depths == [None, None]
     assert not (tmp_path / "none" / "cam0" / "depth").exists()
+
+
+def test_loop_trajectory_closes_and_revisits():
+    """``--trajectory loop``: one closed loop; the last pose is one step short of the
+    first (a revisit), headings follow the path, and it stays in the obstacle-free lane."""
+    from mcgs_warp.data.synthetic import loop_trajectory
+
+    for n in (40, 160, 640):
+        T = loop_trajectory(n).poses
+        steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+        assert np.allclose(steps, steps.mean(), rtol=0.02)  # constant speed
+        gap = np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3])
+        assert gap < 1.5 * steps.mean()  # back at the start
+        assert np.all(np.abs(T[:, 1, 3]) < 1.6) and T[:, 0, 3].min() > -2.0
+        heading = T[:-1, :3, 0]  # body x axis
+        move = np.diff(T[:, :3, 3], axis=0)
+        cos = np.sum(heading * move, 1) / np.linalg.norm(move, axis=1)
+        assert cos.min() > 0.9
+        assert np.allclose(loop_trajectory(n).poses, T)
