@@ -59,14 +59,31 @@ def solve_scales(depth_prior: np.ndarray, depth: np.ndarray, grid_shape=(4, 6), 
     return np.linalg.solve(AtA + lam * np.eye(m * n), Atb + lam).reshape(m, n)
 
 
-def update_scales(buffer, keyframes) -> None:
-    """JDSA step 2: re-fit every view's scale grid to its current MCBA depth."""
+def depth_information(stats, shape) -> np.ndarray:
+    """Per keyframe view pixel [K,C,h,w]: the Gauss-Newton information of its inverse depth
+    from the correspondences alone (MCBA's depth block of its last linearization; 0 where
+    MCBA did not see the view)."""
+    info = np.zeros(shape, np.float64)
+    if stats.depth_info is not None:
+        info[stats.keyframes] = stats.depth_info
+    return info
+
+
+def update_scales(buffer, keyframes, info=None) -> None:
+    """JDSA step 2: re-fit every view's scale grid to its current MCBA depth.
+
+    With ``info`` [K,C,h,w] (:func:`depth_information`) each pixel is weighted by the
+    inverse variance of its MCBA depth from the correspondences, ``info * rho^4`` (times
+    the prior's confidence): pixels whose depth only echoes the prior, or that lack
+    parallax (far, near the epipole), carry no scale information. Fitting to them lets
+    the prior drag the metric scale (the drift HI-SLAM2 and the paper warn about)."""
     disp = buffer.disp.numpy()
     for k in keyframes:
         for c in range(len(buffer.rig)):
             d = disp[k, c].astype(np.float64)
             depth = np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
-            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:], weight=buffer.prior_conf[k, c])
+            w = buffer.prior_conf[k, c] * (1.0 if info is None else info[k, c] * d**4)
+            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:], weight=w)
 
 
 def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None):
@@ -76,5 +93,5 @@ def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 
         keyframes = np.unique(np.concatenate([edges[:, 0], edges[:, 2]]))
     for _ in range(rounds):
         stats.append(mcba.solve(edges, targets, weights, keyframes=keyframes, fixed=fixed))
-        update_scales(mcba.buf, keyframes)
+        update_scales(mcba.buf, keyframes, depth_information(stats[-1], mcba.buf.disp.shape))
     return stats

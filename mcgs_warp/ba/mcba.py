@@ -49,6 +49,8 @@ class MCBAConfig:
 @dataclass
 class MCBAStats:
     cost: list = field(default_factory=list)  # robust cost after each accepted step (first: initial)
+    keyframes: list = field(default_factory=list)
+    depth_info: np.ndarray | None = None  # [n,C,h,w] Gauss-Newton information of each inverse depth from the correspondences alone (last linearization)
     accepted: int = 0
     rejected: int = 0
     seconds_kernel: float = 0.0
@@ -162,6 +164,7 @@ class MCBA:
             gn = g.numpy().astype(np.float64)
             En = Epix.numpy().astype(np.float64).reshape(E, h * w, 2, 6)
             Cn = Cd.numpy()[keyframes].astype(np.float64).reshape(n, C, h * w)
+            stats.keyframes, stats.depth_info = keyframes, Cn.reshape(n, C, h, w).copy()
             wn = wd.numpy()[keyframes].astype(np.float64).reshape(n, C, h * w)
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0

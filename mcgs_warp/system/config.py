@@ -34,10 +34,9 @@ class TrackingConfig:
     cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8)
     mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
     huber_px: float = MCBAConfig.huber_delta  # grid px: Huber threshold of the reprojection residuals
-    prior_weight: float = 1.0  # px^2 m^2: weight of a metric depth prior (sensor depth) in inverse depth
-    jdsa: bool = True  # alternate MCBA with the JDSA scale-grid fit (eq. 5)
-    jdsa_rounds: int = 2  # MCBA / JDSA alternations per solve
-    flow_rounds: int = 2  # MCBA rounds per keyframe; between them correspondences follow the new geometry
+    prior_weight: float = 30.0  # px^2 m^2: weight of a metric depth prior (sensor, stereo, monocular) in inverse depth, times its confidence
+    jdsa: bool = True  # fit the JDSA scale grids (eq. 5) after every MCBA round, for inexact priors
+    flow_rounds: int = 2  # MCBA (+ JDSA) rounds per keyframe; between them correspondences follow the new geometry
 
 
 @dataclass

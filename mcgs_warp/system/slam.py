@@ -39,6 +39,22 @@ from .config import RunConfig
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
+def upsample_inverse_depth(disp: np.ndarray, spec, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reduced-grid inverse depth [h,w] (0 = unknown) -> full-resolution depth [H,W] (m, 0 =
+    unknown; bilinear in inverse depth, only between four known grid pixels) and its mask."""
+    import cv2
+
+    h, w = disp.shape
+    d = np.asarray(disp, np.float32)
+    up = cv2.resize(d, (w * stride, h * stride), interpolation=cv2.INTER_LINEAR)
+    known = cv2.resize((d > 0).astype(np.float32), (w * stride, h * stride), interpolation=cv2.INTER_LINEAR) > 0.999
+    full = np.zeros((spec.height, spec.width), np.float32)
+    mask = np.zeros((spec.height, spec.width), bool)
+    full[: h * stride, : w * stride] = np.where(known, 1.0 / np.maximum(up, 1e-6), 0.0)
+    mask[: h * stride, : w * stride] = known
+    return full, mask
+
+
 class Progress:
     """One status line on stderr: stage, counts and rate."""
 
@@ -188,26 +204,24 @@ class SLAM:
             self._solve(edges, window, fresh=set(window[-tc.temporal_radius - 1 :]))
         return k
 
-    def mapping_depths(self, frame, k: int):
-        """Full-resolution depth targets for mapping: exact sensor depth as is; otherwise
-        the current estimate (MCBA depth, upsampled in inverse depth, where correspondences
-        or a prior constrain it), sharpened by the JDSA-scaled prior where the two agree."""
+    def mapping_depths(self, frame, k: int) -> list:
+        """Full-resolution depth targets for mapping (which also seed its Gaussians): exact
+        sensor depth as is; otherwise the current estimate (MCBA depth, upsampled in inverse
+        depth, where correspondences or a prior constrain it), sharpened by the JDSA-scaled
+        prior where the two agree within 10 %. (Keeping only well-measured pixels as
+        targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
         import cv2
 
         if self.prior.metric and self.prior.exact:
             return list(frame.depths)
         buf, s = self.buf, self.buf.stride
         disp = buf.disp.numpy()[k]
-        info = self._constrained(k)
+        constrained = self._constrained(k)
         depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
         out = []
         for c, spec in enumerate(self.seq.rig.cameras):
             h, w = spec.height // s, spec.width // s
-            d = np.where(info[c, :h, :w], disp[c, :h, :w], 0.0).astype(np.float32)
-            up = cv2.resize(d, (w * s, h * s), interpolation=cv2.INTER_LINEAR)
-            known = cv2.resize((d > 0).astype(np.float32), (w * s, h * s), interpolation=cv2.INTER_LINEAR) > 0.999
-            full = np.zeros((spec.height, spec.width), np.float32)
-            full[: h * s, : w * s] = np.where(known, 1.0 / np.maximum(up, 1e-6), 0.0)
+            full, _ = upsample_inverse_depth(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s)
             if depths[c] is not None:
                 sc = cv2.resize(scale_field(buf.scales[k, c], h, w).astype(np.float32), (w * s, h * s), interpolation=cv2.INTER_LINEAR)
                 scaled = np.zeros_like(full)

@@ -48,3 +48,36 @@ def test_jdsa_with_mcba_recovers_the_prior_scale_field(synthetic_seq):
     # scales of grid cells that cover observed pixels
     err = np.abs(buf.scales[:K] / s_true - 1)
     assert np.median(err) < 0.02, np.median(err)
+
+
+def test_scale_fit_ignores_depths_that_only_echo_the_prior():
+    """JDSA weights each pixel by the inverse variance of its MCBA depth from the
+    correspondences: where MCBA had nothing but the prior (information 0) its depth echoes
+    the wrongly scaled prior and must not drag the grid; where it measured, the grid maps
+    the prior onto the measured depth. Unweighted, the echo halves the correction."""
+    from types import SimpleNamespace
+
+    from mcgs_warp.ba.jdsa import depth_information, update_scales
+
+    rng = np.random.default_rng(1)
+    h, w = 30, 40
+    true = rng.uniform(2, 8, (h, w))
+    prior = true / 1.25  # the prior is 20 % short everywhere
+    measured = np.zeros((h, w), bool)
+    measured[:, ::2] = True  # every other column has correspondences
+    mcba_depth = np.where(measured, true, prior)  # elsewhere MCBA depth just echoes the prior
+    info = np.where(measured, 50.0, 0.0)
+
+    class Buf:
+        rig = [0]
+        scales = np.ones((1, 1, 4, 6))
+        depth_prior = prior[None, None].astype(np.float32)
+        prior_conf = np.ones((1, 1, h, w), np.float32)
+        disp = SimpleNamespace(numpy=lambda: (1.0 / mcba_depth)[None, None].astype(np.float32), shape=(1, 1, h, w))
+
+    stats = SimpleNamespace(keyframes=[0], depth_info=info[None, None])
+    update_scales(Buf, [0], depth_information(stats, Buf.disp.shape))
+    np.testing.assert_allclose(Buf.scales[0, 0], 1.25, rtol=1e-3)
+    Buf.scales = np.ones((1, 1, 4, 6))
+    update_scales(Buf, [0])  # no information: the echoing half pulls the fit towards 1
+    assert np.all(Buf.scales[0, 0] < 1.2)

@@ -20,7 +20,6 @@ from mcgs_warp.system.run import run_sequence
 def fast_config():
     cfg = RunConfig()
     cfg.tracking.mcba_iterations = 2
-    cfg.tracking.jdsa_rounds = 1
     cfg.mapping.iterations_per_keyframe = 3
     cfg.refinement.global_ba_iterations = 1
     cfg.refinement.iterations = 4
