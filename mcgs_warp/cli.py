@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
     run.add_argument("--depth", choices=("auto", "sensor", "stereo", "none"), default=None,
                      help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
-                     "cameras, then temporal views), none, or auto (default: sensor when every frame has depth, "
+                     "cameras), none, or auto (default: sensor when every frame has depth, "
                      "else stereo when cameras overlap, else none)")
     run.add_argument("--correspondences", choices=("estimated", "ground-truth"), default=None,
                      help="estimated (default) or ground-truth: exact correspondences from the sequence's gt/ depth "

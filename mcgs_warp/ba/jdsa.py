@@ -43,8 +43,10 @@ def scale_field(scales: np.ndarray, h: int, w: int) -> np.ndarray:
     return (bilinear_basis(m, n, h, w) @ scales.ravel()).reshape(h, w)
 
 
-def solve_scales(depth_prior: np.ndarray, depth: np.ndarray, grid_shape=(4, 6), weight=None, reg: float = 1e-6) -> np.ndarray:
-    """Scale grid aligning ``depth_prior * B(p, s)`` to ``depth`` ([h,w], m; 0 = unknown)."""
+def solve_scales(depth_prior: np.ndarray, depth: np.ndarray, grid_shape=(4, 6), weight=None, reg: float = 1e-6, start=None) -> np.ndarray:
+    """Scale grid aligning ``depth_prior * B(p, s)`` to ``depth`` ([h,w], m; 0 = unknown).
+    A small Tikhonov term pulls toward ``start`` (the current grid; default 1), so grid
+    nodes without data keep their value."""
     m, n = grid_shape
     h, w = depth.shape
     Phi = bilinear_basis(m, n, h, w)
@@ -56,7 +58,8 @@ def solve_scales(depth_prior: np.ndarray, depth: np.ndarray, grid_shape=(4, 6), 
     Atb = A.T @ (wts * depth.ravel())
     scale = np.trace(AtA) / (m * n) + 1e-12
     lam = reg * scale
-    return np.linalg.solve(AtA + lam * np.eye(m * n), Atb + lam).reshape(m, n)
+    s0 = np.ones(m * n) if start is None else np.asarray(start, np.float64).ravel()
+    return np.linalg.solve(AtA + lam * np.eye(m * n), Atb + lam * s0).reshape(m, n)
 
 
 def depth_information(stats, shape) -> np.ndarray:
@@ -83,7 +86,9 @@ def update_scales(buffer, keyframes, info=None) -> None:
             d = disp[k, c].astype(np.float64)
             depth = np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
             w = buffer.prior_conf[k, c] * (1.0 if info is None else info[k, c] * d**4)
-            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:], weight=w)
+            if not np.any(w * (depth > 0) * (buffer.depth_prior[k, c] > 0) > 0):
+                continue  # nothing measured in this view: keep its grid
+            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:], weight=w, start=buffer.scales[k, c])
 
 
 def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None):

@@ -119,3 +119,21 @@ def grid_depth(depths, rig, stride: int, shape) -> np.ndarray:
         g = d[uv[..., 1], uv[..., 0]]
         out[c, : g.shape[0], : g.shape[1]] = np.where(np.isfinite(g) & (g > 0), g, 0.0)
     return out
+
+
+def upsample_inverse_depth(disp: np.ndarray, spec, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reduced-grid inverse depth [h,w] (1/m, 0 = unknown) -> full-resolution depth [H,W] of
+    camera ``spec`` (m, 0 = unknown) and its mask: bilinear in inverse depth, only where all
+    four surrounding grid pixels are known. Grid pixel ``(u', v')`` sits at full-resolution
+    ``(s u' + s/2, s v' + s/2)`` (see :func:`mcgs_warp.buffer.grid_pixels`); pixels beyond the
+    outermost grid pixels take the edge values."""
+    import cv2
+
+    d = np.ascontiguousarray(disp, dtype=np.float32)
+    o = stride // 2
+    v, u = np.mgrid[0 : spec.height, 0 : spec.width].astype(np.float32)
+    mu, mv = (u - o) / stride, (v - o) / stride
+    up = cv2.remap(d, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    known = cv2.remap((d > 0).astype(np.float32), mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) > 0.999
+    full = np.where(known, 1.0 / np.maximum(up, 1e-6), 0.0).astype(np.float32)
+    return full, known

@@ -213,9 +213,8 @@ class GuidedDIS(FlowProvider):
     rotations and different camera models reduce to a small residual. Confidence: the
     residual's forward-backward consistency, zero where the prediction leaves view j."""
 
-    def __init__(self, dis: DISFlow, device=None):
+    def __init__(self, dis: DISFlow):
         self.dis = dis
-        self.device = device
         self._rays: dict = {}
 
     def _full_rays(self, buffer, c):
@@ -229,6 +228,7 @@ class GuidedDIS(FlowProvider):
         import cv2
 
         from ..kernels.stereo import reproject
+        from .depth import upsample_inverse_depth
 
         E, s = len(edges), buffer.stride
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
@@ -236,14 +236,11 @@ class GuidedDIS(FlowProvider):
         rig, poses, disp = buffer.rig, buffer.get_poses(), buffer.disp.numpy()
         for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
             spec_i, spec_j = rig.cameras[ci], rig.cameras[cj]
-            H, W = spec_i.height, spec_i.width
-            hr, wr = H // s, W // s
-            inv = cv2.resize(disp[i, ci, :hr, :wr], (wr * s, hr * s), interpolation=cv2.INTER_LINEAR)
-            known = cv2.resize((disp[i, ci, :hr, :wr] > 0).astype(np.float32), (wr * s, hr * s), interpolation=cv2.INTER_LINEAR) > 0.999
-            full = np.zeros((H, W), np.float32)
-            full[: hr * s, : wr * s] = np.where(known, inv, 0.0)
+            hr, wr = spec_i.height // s, spec_i.width // s
+            full, _ = upsample_inverse_depth(disp[i, ci, :hr, :wr], spec_i, s)
             T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
-            pred = reproject(self._full_rays(buffer, ci), full, T, spec_j.warp_camera(), buffer.device)
+            inv = np.where(full > 0, 1.0 / np.maximum(full, 1e-6), 0.0)
+            pred = reproject(self._full_rays(buffer, ci), inv, T, spec_j.warp_camera(), buffer.device)  # NaN where unknown
             mx = np.nan_to_num(pred[..., 0], nan=-1e4).astype(np.float32)
             my = np.nan_to_num(pred[..., 1], nan=-1e4).astype(np.float32)
             warped = cv2.remap(buffer.images[j][cj], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -251,8 +248,10 @@ class GuidedDIS(FlowProvider):
             uv = grid_pixels(spec_i, s).astype(np.float32)
             ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
             q = uv + flow[vi, ui]
-            t = np.stack([cv2.remap(m, q[..., 0], q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1e4) for m in (mx, my)], -1)
-            ok = (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
-            targets[e, :hr, :wr] = to_reduced(t.astype(np.float64), s)
+            # the prediction at p + r; NaN (unknown) neighbours make the sample NaN, never a blend
+            t = np.stack([cv2.remap(np.ascontiguousarray(pred[..., a], dtype=np.float32), q[..., 0], q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan) for a in (0, 1)], -1)
+            with np.errstate(invalid="ignore"):
+                ok = np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
+            targets[e, :hr, :wr] = np.where(ok[..., None], to_reduced(t.astype(np.float64), s), 0.0)
             weights[e, :hr, :wr] = conf[vi, ui] * ok
         return targets, weights

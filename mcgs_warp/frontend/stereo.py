@@ -1,12 +1,13 @@
-"""Metric depth from the rig itself: sweep stereo between cameras (and, once poses exist,
-between keyframes), behind the :class:`~mcgs_warp.frontend.depth.DepthPrior` interface.
+"""Metric depth from the rig itself: sweep stereo between cameras, behind the
+:class:`~mcgs_warp.frontend.depth.DepthPrior` interface.
 
 Per keyframe and camera ``a`` the reference view is swept (:mod:`mcgs_warp.kernels.stereo`)
 against every camera ``b`` of the rig whose field of view overlaps ``a``'s at the same
 timestamp (``T_b_a = inv(T_b_c[b]) T_b_c[a]``, known from calibration: the depth is
 metric), at ``1/scale`` resolution, and the two directions are checked against each other
-(left-right). Temporal sources (other keyframes of the window at their current MCBA
-poses) extend the prior to rigs without overlap; their depth is only as metric as the poses.
+(left-right). The sweep kernels take any number of sources at any poses, so temporal
+sources (other keyframes at their MCBA poses, for rigs without overlap) can join; that is
+not wired in yet.
 
 Sampling: uniform in inverse depth between ``1/far`` and ``1/near``, ``plane_px`` pixels
 of epipolar motion per step for the pair's baseline (``planes`` caps the count); with the
@@ -20,11 +21,15 @@ cross-view correspondences.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..rig import CameraSpec, Rig
+
+
+KEEP = 16  # frames whose full-resolution stereo depth stays cached (more than a window)
 
 
 def scaled_spec(spec: CameraSpec, factor: int) -> CameraSpec:
@@ -42,7 +47,8 @@ def grey(image: np.ndarray, factor: int) -> np.ndarray:
     import cv2
 
     g = cv2.cvtColor(np.ascontiguousarray(image, dtype=np.float32), cv2.COLOR_RGB2GRAY)
-    if factor > 1:
+    if factor > 1:  # whole factor x factor blocks only, as scaled_spec assumes
+        g = g[: g.shape[0] // factor * factor, : g.shape[1] // factor * factor]
         g = cv2.resize(g, (g.shape[1] // factor, g.shape[0] // factor), interpolation=cv2.INTER_AREA)
     return g
 
@@ -86,6 +92,7 @@ class RigStereo:
         C = len(rig)
         self.pairs = [(a, b) for a in range(C) for b in range(C) if a != b and overlap[a, b] >= cfg.min_overlap and overlap[b, a] >= cfg.min_overlap]
         self._cache: dict = {}
+        self._depths: OrderedDict = OrderedDict()  # key -> (depths, confidences) of recent frames
 
     def hypotheses(self, baseline: float, focal: float) -> np.ndarray:
         from ..kernels.stereo import inverse_depth_hypotheses
@@ -117,7 +124,10 @@ class RigStereo:
 
     def depth(self, key, images) -> tuple[list, list]:
         """Per camera: depth [H,W] (m, 0 = none) and confidence [H,W] at full resolution,
-        the most confident pair per pixel."""
+        the most confident pair per pixel. The last ``KEEP`` frames' results are kept (the
+        mapper asks again for every keyframe of the window after each solve)."""
+        if key in self._depths:
+            return self._depths[key]
         sweeps = self.pair_sweeps(key, images)
         depths, confs = [], []
         for c, spec in enumerate(self.rig.cameras):
@@ -132,12 +142,15 @@ class RigStereo:
                 best_d[take], best_c[take] = d[take], conf[take]
             depths.append(upsample_nearest(best_d, spec, self.cfg.scale))
             confs.append(upsample_nearest(best_c, spec, self.cfg.scale))
+        self._depths[key] = (depths, confs)
+        while len(self._depths) > KEEP:
+            self._depths.popitem(last=False)
         return depths, confs
 
 
 def upsample_nearest(a: np.ndarray, spec: CameraSpec, factor: int) -> np.ndarray:
-    """[h,w] at 1/factor -> [H,W] of ``spec`` (edge rows/columns repeated)."""
+    """[h,w] at 1/factor -> [H,W] of ``spec``; rows/columns beyond ``factor * h`` (odd
+    sizes) take the last row/column."""
     up = np.repeat(np.repeat(a, factor, 0), factor, 1)
-    out = np.zeros((spec.height, spec.width), a.dtype)
-    out[: up.shape[0], : up.shape[1]] = up[: spec.height, : spec.width]
-    return out
+    out = np.pad(up, ((0, max(spec.height - up.shape[0], 0)), (0, max(spec.width - up.shape[1], 0))), mode="edge")
+    return out[: spec.height, : spec.width]

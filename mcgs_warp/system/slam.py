@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..ba.graph import CROSS_VIEW, build_edges, camera_overlap, sliding_window
+from ..ba.graph import build_edges, camera_overlap, sliding_window
 from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
 from ..data.trajectory import Trajectory
-from ..frontend.depth import StereoDepth, choose_prior, grid_depth
+from ..frontend.depth import choose_prior, grid_depth, upsample_inverse_depth
 from ..frontend.flow import DISFlow, GuidedDIS, SequenceGroundTruthFlow, StereoMatches
 from ..frontend.stereo import RigStereo
 from ..frontend.keyframes import KeyframeSelector
@@ -37,22 +37,6 @@ from .config import RunConfig
 
 
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
-
-
-def upsample_inverse_depth(disp: np.ndarray, spec, stride: int) -> tuple[np.ndarray, np.ndarray]:
-    """Reduced-grid inverse depth [h,w] (0 = unknown) -> full-resolution depth [H,W] (m, 0 =
-    unknown; bilinear in inverse depth, only between four known grid pixels) and its mask."""
-    import cv2
-
-    h, w = disp.shape
-    d = np.asarray(disp, np.float32)
-    up = cv2.resize(d, (w * stride, h * stride), interpolation=cv2.INTER_LINEAR)
-    known = cv2.resize((d > 0).astype(np.float32), (w * stride, h * stride), interpolation=cv2.INTER_LINEAR) > 0.999
-    full = np.zeros((spec.height, spec.width), np.float32)
-    mask = np.zeros((spec.height, spec.width), bool)
-    full[: h * stride, : w * stride] = np.where(known, 1.0 / np.maximum(up, 1e-6), 0.0)
-    mask[: h * stride, : w * stride] = known
-    return full, mask
 
 
 class Progress:
@@ -96,14 +80,14 @@ class SLAM:
         self.progress = progress or Progress(False)
         self.buf = KeyframeBuffer(sequence.rig, stride=tc.stride, capacity=len(sequence) + 1, device=device)
         self.flow = DISFlow()
-        self.guided = GuidedDIS(self.flow, device=self.buf.device)
+        self.guided = GuidedDIS(self.flow)
         self.selector = KeyframeSelector(self.flow, threshold=tc.keyframe_flow_px)
         rig_overlap = camera_overlap(sequence.rig, stride=tc.stride)
         self.overlap = rig_overlap if tc.cross_view else None
         self.stereo = RigStereo(sequence.rig, rig_overlap, device=self.buf.device)
         self.prior = choose_prior(sequence, tc.depth, lambda: self.stereo if self.stereo.pairs else None)
         self.oracle = SequenceGroundTruthFlow(sequence) if tc.correspondences == "ground-truth" else None
-        self.stereo_matches = StereoMatches(self.stereo) if self.stereo.pairs else None
+        self.stereo_matches = StereoMatches(self.stereo)
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
         self._flows: dict = {}
@@ -131,7 +115,7 @@ class SLAM:
             if self.oracle is not None:
                 self._compute(missing, self.oracle)
             else:
-                cross = [k for k in missing if k[0] == k[2] and self.stereo_matches is not None]
+                cross = [k for k in missing if k[0] == k[2] and (k[1], k[3]) in self.stereo.pairs]
                 self._compute(cross, self.stereo_matches)
                 self._compute([k for k in missing if k not in set(cross)], self.flow)
         return np.stack([self._flows[k][0] for k in keys]), np.stack([self._flows[k][1] for k in keys])
@@ -159,23 +143,23 @@ class SLAM:
         self._follow_depths(keyframes)
 
     def _follow_depths(self, keyframes) -> None:
-        """Eq. 13 and fresh mapping targets: a mapped keyframe whose depth MCBA/JDSA
-        rescaled takes its Gaussians along (scaled about its rig origin), and its depth
-        targets become the new estimate (unless they are exact sensor depth)."""
+        """Eq. 13 and fresh mapping targets for estimated depth: a mapped keyframe whose depth
+        MCBA/JDSA rescaled (median ratio over its views) takes its Gaussians along, scaled
+        about its rig origin (an approximation: its cameras sit within 0.25 m of it, so a 1 %
+        change moves a Gaussian at most 2.5 mm off its ray), and its depth targets become the
+        new estimate. Exact sensor depth is its own target: nothing follows."""
+        if self.prior.metric and self.prior.exact:
+            return
         for k in keyframes:
             if k not in self.mapper.depths:
                 continue
-            new = self.buf.depth(k)
-            old = self._mapped_depth.get(k)
-            if old is not None:
-                ok = (old > 0) & (new > 0)
-                if ok.any():
-                    s = float(np.median(new[ok] / old[ok]))
-                    if abs(np.log(s)) > 1e-3:
-                        self.mapper.map.scale_anchored(k, self.buf.get_poses()[k], s)
-            self._mapped_depth[k] = new
-            if not (self.prior.metric and self.prior.exact):
-                self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k)
+            new, old = self.buf.depth(k), self._mapped_depth[k]
+            ok = (old > 0) & (new > 0)
+            s = float(np.median(new[ok] / old[ok])) if ok.any() else 1.0
+            if abs(np.log(s)) > 1e-3:  # smaller changes accumulate until they count
+                self.mapper.map.scale_anchored(k, self.buf.get_poses()[k], s)
+                self._mapped_depth[k] = new
+            self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k)
 
     def add_keyframe(self, frame) -> int:
         buf, tc = self.buf, self.cfg.tracking
@@ -223,9 +207,9 @@ class SLAM:
             h, w = spec.height // s, spec.width // s
             full, _ = upsample_inverse_depth(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s)
             if depths[c] is not None:
-                sc = cv2.resize(scale_field(buf.scales[k, c], h, w).astype(np.float32), (w * s, h * s), interpolation=cv2.INTER_LINEAR)
-                scaled = np.zeros_like(full)
-                scaled[: h * s, : w * s] = depths[c][: h * s, : w * s] * sc
+                # the JDSA field lives on the buffer's grid (buf.h x buf.w), this camera's part [:h,:w]
+                field = scale_field(buf.scales[k, c], buf.h, buf.w)[:h, :w].astype(np.float32)
+                scaled = depths[c] * cv2.resize(field, (spec.width, spec.height), interpolation=cv2.INTER_LINEAR)
                 agree = (scaled > 0) & (full > 0) & (np.abs(scaled - full) < 0.1 * full)
                 full = np.where(agree, scaled, full)
             out.append(full)
@@ -263,7 +247,7 @@ class SLAM:
             flow_targets=np.array([v[0] for v in self._flows.values()], dtype=np.float32).reshape(-1, buf.h, buf.w, 2),
             flow_weights=np.array([v[1] for v in self._flows.values()], dtype=np.float32).reshape(-1, buf.h, buf.w),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
-            targets=np.array([np.stack(self.mapper.depths[k]) for k in sorted(self._mapped_depth)] if self._deferred_first() else [], dtype=np.float32),
+            **{f"targets_cam{c}": np.array([self.mapper.depths[k][c] for k in sorted(self._mapped_depth)] if self._deferred_first() else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
             meta=np.array(json.dumps({"next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
         )
@@ -295,7 +279,7 @@ class SLAM:
         self._flows = {tuple(int(v) for v in key): (t, w) for key, t, w in zip(a["flow_keys"], a["flow_targets"], a["flow_weights"])}
         self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
         if self._deferred_first():  # estimated targets: restore them as they were
-            depths = {int(k): list(t) for k, t in zip(a["mapped_keys"], a["targets"])}
+            depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
         else:
             depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
         self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)

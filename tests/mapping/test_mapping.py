@@ -133,3 +133,24 @@ def test_densify_and_prune_counts(fitted, mapping_seq):
     after = m.map.to_numpy()
     assert np.all(1 / (1 + np.exp(-after["opacity_logits"])) >= 0.01)
     assert np.isclose(np.exp(after["log_scales"]).max(1), 0.2 / 1.6).sum() == 10  # split children
+
+
+def test_scale_anchored_follows_a_depth_scale_change():
+    """Eq. 13: a keyframe's depth rescaled by s moves its Gaussians along their rays from
+    its rig origin (x <- c + s (x - c)) and scales their sizes by s; others stay put."""
+    import warp as wp
+
+    rng = np.random.default_rng(0)
+    gm = GaussianMap("cpu")
+    means = rng.uniform(-3, 3, (6, 3))
+    gm.append(means[:3], np.full((3, 3), 0.5), np.full((3, 3), -3.0), anchor=0)
+    gm.append(means[3:], np.full((3, 3), 0.5), np.full((3, 3), -2.0), anchor=1)
+    T = np.eye(4)
+    T[:3, 3] = (1.0, -2.0, 0.5)
+    gm.scale_anchored(1, T, 1.2)
+    wp.synchronize()
+    d = gm.to_numpy()
+    np.testing.assert_allclose(d["means"][:3], means[:3], atol=1e-6)
+    np.testing.assert_allclose(d["means"][3:], T[:3, 3] + 1.2 * (means[3:] - T[:3, 3]), atol=1e-5)
+    np.testing.assert_allclose(d["log_scales"][3:], -2.0 + np.log(1.2), atol=1e-6)
+    np.testing.assert_allclose(d["log_scales"][:3], -3.0)
