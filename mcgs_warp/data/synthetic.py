@@ -170,7 +170,8 @@ class SceneRenderer:
 def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """A depth map [H,W] (m) that behaves like a monocular network's: the exact depth with
     blurred edges, times a smooth random scale field between 0.8 and 1.25 (bilinear over a
-    3x3 grid, so a JDSA grid can represent it), plus 2 % multiplicative noise."""
+    3x3 grid: smooth enough for a 4x6 JDSA grid to follow closely, not exactly), plus 2 %
+    multiplicative noise."""
     import cv2
 
     h, w = depth.shape
