@@ -49,6 +49,7 @@ class MappingRunConfig(MappingConfig):
 @dataclass
 class RefinementConfig:
     global_ba_iterations: int = 4  # LM iterations of the offline MCBA over all keyframes (0: none)
+    global_ba_radius: int = 6  # keyframes: its temporal edges reach this far (longer baselines than online, so far depth is measured)
     iterations: int = 120  # joint refinement iterations (Adam steps) of map, poses and exposures
     poses: bool = True  # refine the rig poses through the renderer
     exposure: bool = True  # fit a per-image affine colour (gain, bias)

@@ -101,10 +101,12 @@ class SLAM:
         return self.cfg.tracking.jdsa and self.prior.metric and not self.prior.exact
 
     # ----------------------------------------------------------------------------------
-    def correspondences(self, edges: np.ndarray, refresh=()):
+    def correspondences(self, edges: np.ndarray, refresh=(), guided_new: bool = False):
         """Targets and confidences per edge, cached per edge. Cross-view edges come from
         the rig's sweep stereo, the others from DIS; edges touching a keyframe in
-        ``refresh`` are re-estimated from the current reprojection (:class:`GuidedDIS`).
+        ``refresh`` are re-estimated from the current reprojection (:class:`GuidedDIS`);
+        ``guided_new`` computes new non-cross-view edges that way from the start (global BA's
+        long edges: their keyframes are already solved, their motion too large for raw DIS).
         With ``--correspondences ground-truth`` every edge is exact (oracle)."""
         keys = [tuple(e) for e in edges[:, :4].tolist()]
         if self.oracle is None and refresh:
@@ -117,7 +119,7 @@ class SLAM:
             else:
                 cross = [k for k in missing if k[0] == k[2] and (k[1], k[3]) in self.stereo.pairs]
                 self._compute(cross, self.stereo_matches)
-                self._compute([k for k in missing if k not in set(cross)], self.flow)
+                self._compute([k for k in missing if k not in set(cross)], self.guided if guided_new else self.flow)
         return np.stack([self._flows[k][0] for k in keys]), np.stack([self._flows[k][1] for k in keys])
 
     def _compute(self, keys, provider) -> None:
@@ -126,14 +128,14 @@ class SLAM:
             for e, tt, ww in zip(keys, t, w):
                 self._flows[e] = (tt, ww)
 
-    def _solve(self, edges, keyframes, fresh=()):
+    def _solve(self, edges, keyframes, fresh=(), guided_new: bool = False):
         """MCBA (+ JDSA) over ``keyframes`` in ``flow_rounds`` outer rounds; between rounds
         the correspondences of edges touching ``fresh`` keyframes follow the new geometry.
         Anchored Gaussians follow every pose and scale change, and the mapping depth
         targets are refreshed."""
         rounds = max(1, self.cfg.tracking.flow_rounds)
         for r in range(rounds):
-            targets, weights = self.correspondences(edges, refresh=fresh if r > 0 else ())
+            targets, weights = self.correspondences(edges, refresh=fresh if r > 0 else (), guided_new=guided_new)
             before = self.buf.get_poses()
             if self.jdsa_active:
                 mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1)
@@ -342,10 +344,10 @@ class SLAM:
         t0 = time.perf_counter()
         if rc.global_ba_iterations and len(self.buf) > 1:
             self.progress("global BA", 0, 1, force=True)
-            edges = build_edges(range(len(self.buf)), len(self.seq.rig), self.overlap, radius=self.cfg.tracking.temporal_radius, cross_view=self.cfg.tracking.cross_view)
+            edges = build_edges(range(len(self.buf)), len(self.seq.rig), self.overlap, radius=rc.global_ba_radius, cross_view=self.cfg.tracking.cross_view)
             saved = self.mcba.cfg.iterations
             self.mcba.cfg.iterations = rc.global_ba_iterations
-            self._solve(edges, list(range(len(self.buf))))
+            self._solve(edges, list(range(len(self.buf))), guided_new=True)
             self.mcba.cfg.iterations = saved
             self.progress("global BA", 1, 1, force=True)
         if rc.iterations:
