@@ -4,7 +4,9 @@ Builds a map from the built-in synthetic sequence (320x240, keyframes every 2nd
 frame, Gaussians from the true depth every 4th pixel), then times mapping
 iterations (one keyframe = 3 views per iteration), split into render, loss
 (host: L1 + SSIM + depth), backward and optimizer (Adam + densification
-statistics). Prints medians over ``--iterations`` after a warm-up.
+statistics). Prints medians over ``--iterations`` after a warm-up, beside the renderer's own
+forward + backward time for the same views and Gaussians and the ratio (what the mapping
+stage adds on top of splatting).
 
     python benchmarks/bench_mapping.py [--device cuda:0] [--keyframes 10]
 """
@@ -52,12 +54,26 @@ def main():
         rows.append([m.seconds[k] - before[k] for k in ("render", "loss", "backward", "optimizer")])
     r = np.median(np.array(rows), axis=0)
     n = len(m.map)
+    # The renderer alone on the same views and Gaussians: forward + backward of a colour gradient.
+    import time
+
+    from mcgs_warp.kernels import render, render_backward
+
+    views = m.views(0)
+    times = []
+    for _ in range(args.iterations):
+        t0 = time.perf_counter()
+        out = render(m.map.gaussians, views)
+        render_backward(m.map.gaussians, views, out, grad_color=np.ones(out.color.shape + (3,), np.float32))
+        wp.synchronize()
+        times.append(time.perf_counter() - t0)
+    renderer = float(np.median(times))
     param_mb = n * (3 + 4 + 3 + 1 + 3) * 4 / 2**20
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"device: {wp.get_device()}; {args.keyframes} keyframes x 3 cameras at 320x240; {n} Gaussians")
     print(f"median of {args.iterations} iterations (one keyframe, 3 views each), seconds")
-    print(f"{'render':>9} {'loss':>9} {'backward':>9} {'optimizer':>9} {'total':>9} {'it/s':>7}")
-    print(f"{r[0]:>9.4f} {r[1]:>9.4f} {r[2]:>9.4f} {r[3]:>9.4f} {r.sum():>9.4f} {1 / r.sum():>7.2f}")
+    print(f"{'render':>9} {'loss':>9} {'backward':>9} {'optimizer':>9} {'total':>9} {'it/s':>7} {'renderer f+b':>13} {'ratio':>6}")
+    print(f"{r[0]:>9.4f} {r[1]:>9.4f} {r[2]:>9.4f} {r[3]:>9.4f} {r.sum():>9.4f} {1 / r.sum():>7.2f} {renderer:>13.4f} {r.sum() / renderer:>6.2f}")
     print(f"memory: parameters {param_mb:.1f} MB, with Adam moments {3 * param_mb:.1f} MB; peak process RSS {rss_mb:.0f} MB")
 
 

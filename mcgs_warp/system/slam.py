@@ -342,13 +342,19 @@ class SLAM:
     def refine(self) -> None:
         rc = self.cfg.refinement
         t0 = time.perf_counter()
+        self.poses_before_global_ba = self.buf.get_poses()  # keyframe T_w_b (benchmarks/scaling.py: drift)
         if rc.global_ba_iterations and len(self.buf) > 1:
             self.progress("global BA", 0, 1, force=True)
             edges = build_edges(range(len(self.buf)), len(self.seq.rig), self.overlap, radius=rc.global_ba_radius, cross_view=self.cfg.tracking.cross_view)
-            saved = self.mcba.cfg.iterations
+            saved = self.mcba.cfg.iterations, self.mcba.cfg.prior_weight
             self.mcba.cfg.iterations = rc.global_ba_iterations
+            if not self.prior.exact:
+                # the long edges measure what the online window could not; an inexact prior,
+                # JDSA-scaled to the online estimate, would only hold that estimate in place
+                self.mcba.cfg.prior_weight = 0.0
             self._solve(edges, list(range(len(self.buf))), guided_new=True)
-            self.mcba.cfg.iterations = saved
+            self.mcba.cfg.iterations, self.mcba.cfg.prior_weight = saved
+            self.seconds["global_ba"] = time.perf_counter() - t0
             self.progress("global BA", 1, 1, force=True)
         if rc.iterations:
             def report(it, r):

@@ -1,0 +1,77 @@
+"""How the system scales with sequence length, on the closed-loop synthetic sequence.
+
+    python benchmarks/scaling.py [--lengths 40 160 640] [--depth exact] [--out out/scaling]
+
+For each length N: ``mcgs-slam synth --trajectory loop --frames N`` (one loop through the room
+back to its start), then a full run in a fresh process (so peak memory is per run). Prints per
+length: keyframes, seconds per frame, peak resident memory, global-BA seconds, SE(3)-aligned
+ATE, and the end-to-start drift (error of the relative pose between the first and the last
+keyframe, which a closed loop makes observable) before and after global BA.
+
+The targets of issue 12 (seconds per frame grows <= 1.5x from 40 to 640 frames, <= 4 GB at
+640, global BA over 300 keyframes <= 2 GB and <= 120 s, drift halved by global BA) are what
+this table is for; today's dense pose-depth coupling in MCBA is quadratic in keyframes.
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+CHILD = r"""
+import json, resource, sys, time
+import numpy as np
+import warp as wp
+wp.config.log_level = wp.LOG_WARNING
+from mcgs_warp.data import open_sequence
+from mcgs_warp.system.config import RunConfig
+from mcgs_warp.system.outputs import write_outputs
+from mcgs_warp.system.slam import SLAM, Progress
+
+data, out = sys.argv[1], sys.argv[2]
+seq = open_sequence(data)
+t0 = time.perf_counter()
+slam = SLAM(seq, RunConfig(), progress=Progress(False))
+result = slam.run()
+m = write_outputs(out, slam, result, time.perf_counter() - t0)
+gt = seq.groundtruth
+idx = [int(np.argmin(np.abs(gt.timestamps - t))) for t in (slam.buf.timestamps[0], slam.buf.timestamps[-1])]
+rel_gt = np.linalg.inv(gt.poses[idx[0]]) @ gt.poses[idx[1]]
+
+def drift(T):
+    rel = np.linalg.inv(T[0]) @ T[-1]
+    return float(np.linalg.norm(rel[:3, 3] - rel_gt[:3, 3]))
+
+m["drift_before_global_ba_m"] = drift(slam.poses_before_global_ba)
+m["drift_after_global_ba_m"] = drift(slam.buf.get_poses())
+m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps(m))
+"""
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--lengths", type=int, nargs="+", default=[40, 160, 640])
+    parser.add_argument("--depth", default="exact", choices=("exact", "mono", "none"))
+    parser.add_argument("--out", default="out/scaling")
+    args = parser.parse_args()
+    out = Path(args.out)
+    rows = []
+    for n in args.lengths:
+        data = out / f"loop_{n}"
+        if not (data / "timestamps.txt").is_file():
+            subprocess.run([sys.executable, "-m", "mcgs_warp", "synth", "--out", str(data), "--frames", str(n), "--trajectory", "loop", "--depth", args.depth], check=True, capture_output=True)
+        res = subprocess.run([sys.executable, "-c", CHILD, str(data), str(out / f"run_{n}")], check=True, capture_output=True, text=True)
+        m = json.loads(res.stdout.strip().splitlines()[-1])
+        rows.append((n, m))
+        print(f"done: {n} frames ({m['seconds_total']:.0f} s)", flush=True)
+    print()
+    print("| frames | keyframes | s / frame | peak RSS MB | global BA s | SE(3) ATE mm | % of path | drift before GBA mm | drift after GBA mm |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for n, m in rows:
+        print(f"| {n} | {m['n_keyframes']} | {m['seconds_total'] / n:.2f} | {m['peak_rss_mb']:.0f} | {m['seconds'].get('global_ba', 0):.1f} | {1000 * m['ate_se3_rmse_m']:.1f} | {100 * m['ate_se3_rmse_m'] / m['path_length_m']:.2f} | {1000 * m['drift_before_global_ba_m']:.1f} | {1000 * m['drift_after_global_ba_m']:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
