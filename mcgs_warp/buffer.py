@@ -21,12 +21,14 @@ from .geometry import matrix_to_transform7, transform7_to_matrix
 from .rig import CameraSpec, Rig
 
 
-def reduced_camera(spec: CameraSpec, stride: int) -> CameraSpec:
-    """The camera seen on the reduced grid (same model and distortion, scaled intrinsics)."""
+def reduced_camera(spec: CameraSpec, stride: int, offset: float | None = None) -> CameraSpec:
+    """The camera seen on the reduced grid (same model and distortion, scaled intrinsics):
+    pixel ``u'`` is full-resolution ``stride u' + offset`` (default ``stride // 2``, the
+    grid's samples; ``(stride - 1) / 2`` for an image downsampled by area averaging)."""
     from .kernels.camera import equirectangular_intrinsics
 
     fx, fy, cx, cy = spec.intrinsics if spec.intrinsics is not None else equirectangular_intrinsics(spec.width, spec.height)
-    o = stride // 2
+    o = stride // 2 if offset is None else offset
     return CameraSpec(
         spec.name, spec.model, spec.width // stride, spec.height // stride,
         (fx / stride, fy / stride, (cx - o) / stride, (cy - o) / stride), spec.distortion, spec.T_b_c, spec.time_offset,

@@ -35,11 +35,9 @@ KEEP = 16  # frames whose full-resolution stereo depth stays cached (more than a
 def scaled_spec(spec: CameraSpec, factor: int) -> CameraSpec:
     """The camera seen on an image downsampled by ``factor`` with area averaging (pixel
     centre ``u'`` covers full-resolution ``factor u' + (factor - 1) / 2``)."""
-    from ..kernels.camera import equirectangular_intrinsics
+    from ..buffer import reduced_camera
 
-    fx, fy, cx, cy = spec.intrinsics if spec.intrinsics is not None else equirectangular_intrinsics(spec.width, spec.height)
-    o = (factor - 1) / 2.0
-    return CameraSpec(spec.name, spec.model, spec.width // factor, spec.height // factor, (fx / factor, fy / factor, (cx - o) / factor, (cy - o) / factor), spec.distortion, spec.T_b_c, spec.time_offset)
+    return reduced_camera(spec, factor, offset=(factor - 1) / 2.0)
 
 
 def grey(image: np.ndarray, factor: int) -> np.ndarray:
@@ -51,13 +49,6 @@ def grey(image: np.ndarray, factor: int) -> np.ndarray:
         g = g[: g.shape[0] // factor * factor, : g.shape[1] // factor * factor]
         g = cv2.resize(g, (g.shape[1] // factor, g.shape[0] // factor), interpolation=cv2.INTER_AREA)
     return g
-
-
-def focal_px(spec: CameraSpec) -> float:
-    from ..kernels.camera import equirectangular_intrinsics
-
-    fx = spec.intrinsics[0] if spec.intrinsics is not None else equirectangular_intrinsics(spec.width, spec.height)[0]
-    return float(fx)
 
 
 @dataclass
@@ -114,7 +105,7 @@ class RigStereo:
         out = {}
         for a, b in self.pairs:
             T_b_a = np.linalg.inv(rig.cameras[b].T_b_c) @ rig.cameras[a].T_b_c
-            rho = self.hypotheses(float(np.linalg.norm(T_b_a[:3, 3])), focal_px(self.specs[a]))
+            rho = self.hypotheses(float(np.linalg.norm(T_b_a[:3, 3])), self.specs[a].intrinsics[0])
             out[(a, b)] = sweep(greys[a], self.rays[a], [greys[b]], [self.cams[b]], T_b_a[None], rho, cfg.radius, cfg.min_std, 1, cfg.max_cost, cfg.max_ratio, device=self.device)
         for a, b in self.pairs:
             T_b_a = np.linalg.inv(rig.cameras[b].T_b_c) @ rig.cameras[a].T_b_c
