@@ -16,6 +16,13 @@ accumulates, for each edge, the pose blocks ``H_ii, H_ij, H_jj`` and gradients
 ``v_i, v_j``; per pixel, the pose-depth couplings ``E_i, E_j`` (written per edge),
 and per depth variable of (i, ci) the diagonal ``C`` and gradient ``w``.
 When ``i == j`` (a cross-view edge, eq. 8) the rig pose cancels: only depth terms.
+
+The Schur complement (eq. 10) is reduced sparsely here too (``schur_pairs_kernel``,
+``schur_rhs_kernel``, added into the 6n x 6n reduced camera system by
+``schur_scatter_kernel`` and ``pose_system_kernel``), followed by the back-substitution and the candidate state of a
+Levenberg-Marquardt step (``backsub_coupling_kernel``, ``depth_candidate_kernel``,
+``pose_candidate_kernel``), the optional inverse-depth prior, and the costs; those
+kernels index depths and poses by window slot (``window_copy_kernel``).
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import FAR, NEAR, Camera, camera_in_domain, camera_jacobian, camera_project, camera_unproject
-from .se3 import skew, vec6
+from .se3 import se3_retract, skew, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -212,3 +219,253 @@ def mcba_cost_kernel(
         return
     r = target - uv
     wp.atomic_add(cost, e, huber_cost(wp.sqrt(wgt) * wp.length(r), huber_delta))
+
+
+# ---------------------------------------------------------------------------------------
+# Sparse Schur reduction (paper eq. 10) over a window of n keyframes held in slots 0..n-1.
+#
+# The depth variable of pixel p of view (i, ci) couples to pose i through every edge e
+# leaving (i, ci) (``E_{e,i}(p)``, Epix[e, y, x, 0]) and to pose j_e (``E_{e,j}(p)``,
+# Epix[e, y, x, 1]). With ``Q_p = 1 / (C_p (1 + lambda) + 1e-9)`` (0 where C_p == 0) the
+# reduced camera system ``S = B - sum_p G_p^T Q_p G_p`` needs, for every ordered pair of
+# pose edges (e1, e2) with the same source view, the four 6x6 blocks
+# ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for (a, b) in (i,i), (i,j2), (j1,i), (j1,j2)
+# (computed once per unordered pair, e1 <= e2: those of (e2, e1) are their transposes):
+# the work and memory grow with edge pairs x pixels, never with keyframes^2. The kernels
+# below compute them per (pair, image row) and add once per row, then scatter the blocks
+# (pairs x 4 x 36 numbers) and the per-edge pose blocks B into S in float64; only S
+# [6n,6n] and rhs [6n] go to the host for the pose solve.
+# ---------------------------------------------------------------------------------------
+
+
+@wp.func
+def schur_depth_weight(c: float, lam: float):
+    """``Q = 1 / (C (1 + lambda) + 1e-9)`` of one depth variable; 0 where ``C == 0`` (unobserved)."""
+    if c > 0.0:
+        return 1.0 / (c * (1.0 + lam) + 1.0e-9)
+    return 0.0
+
+
+@wp.kernel
+def window_copy_kernel(
+    keyframes: wp.array(dtype=wp.int32),  # [n] buffer index of each window slot
+    to_window: int,  # 1: buffer -> window; 0: window -> buffer
+    disp_all: wp.array(dtype=float, ndim=4),  # [K,C,h,w] the buffer's inverse depths, 1/m
+    poses_all: wp.array(dtype=wp.transform),  # [K] the buffer's T_w_b
+    disp: wp.array(dtype=float, ndim=4),  # [n,C,h,w] the window's
+    poses: wp.array(dtype=wp.transform),  # [n] the window's
+):
+    """Copy the window's inverse depths and rig poses out of the keyframe buffer, or back."""
+    s, c, y, x = wp.tid()
+    k = keyframes[s]
+    first = c == 0 and y == 0 and x == 0
+    if to_window != 0:
+        disp[s, c, y, x] = disp_all[k, c, y, x]
+        if first:
+            poses[s] = poses_all[k]
+    else:
+        disp_all[k, c, y, x] = disp[s, c, y, x]
+        if first:
+            poses_all[k] = poses[s]
+
+
+@wp.kernel
+def prior_terms_kernel(
+    C_corr: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth information from the correspondences
+    w_corr: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth gradient from the correspondences
+    disp: wp.array(dtype=float, ndim=4),  # [n,C,h,w] current inverse depth, 1/m
+    target: wp.array(dtype=float, ndim=4),  # [n,C,h,w] prior inverse depth, 1/m
+    mask: wp.array(dtype=float, ndim=4),  # [n,C,h,w] prior confidence (0: no prior)
+    prior_weight: float,  # px^2 m^2
+    C_out: wp.array(dtype=float, ndim=4),  # [n,C,h,w] out: C + pw mask
+    w_out: wp.array(dtype=float, ndim=4),  # [n,C,h,w] out: w + pw mask (target - d)
+):
+    """Add the inverse-depth prior ``0.5 pw mask (target - d)^2`` to the depth block and gradient."""
+    s, c, y, x = wp.tid()
+    pm = prior_weight * mask[s, c, y, x]
+    C_out[s, c, y, x] = C_corr[s, c, y, x] + pm
+    w_out[s, c, y, x] = w_corr[s, c, y, x] + pm * (target[s, c, y, x] - disp[s, c, y, x])
+
+
+@wp.kernel
+def prior_cost_kernel(
+    disp: wp.array(dtype=float, ndim=4),  # [n,C,h,w] inverse depth, 1/m
+    target: wp.array(dtype=float, ndim=4),  # [n,C,h,w]
+    mask: wp.array(dtype=float, ndim=4),  # [n,C,h,w]
+    prior_weight: float,
+    total: wp.array(dtype=wp.float64),  # [1] out (accumulated)
+):
+    """Prior cost ``0.5 pw sum mask (target - d)^2``, summed in float64."""
+    s, c, y, x = wp.tid()
+    m = mask[s, c, y, x]
+    if m != 0.0:
+        r = target[s, c, y, x] - disp[s, c, y, x]
+        wp.atomic_add(total, 0, wp.float64(0.5 * prior_weight * m * r * r))
+
+
+@wp.kernel
+def sum_float64_kernel(values: wp.array(dtype=float), total: wp.array(dtype=wp.float64)):
+    """``total[0] += sum(values)`` in float64 (per-edge costs into one number)."""
+    i = wp.tid()
+    wp.atomic_add(total, 0, wp.float64(values[i]))
+
+
+@wp.kernel
+def schur_pairs_kernel(
+    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2] pose-depth couplings E_i, E_j per pixel
+    C: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth block (with prior), slot-indexed
+    edges: wp.array(dtype=wp.vec4i),  # [E] (slot i, ci, slot j, cj)
+    pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2): pose edges leaving the same view (i, ci)
+    lam: float,  # Levenberg-Marquardt damping of the depth block
+    blocks: wp.array(dtype=mat66, ndim=2),  # [P,4] out (accumulated): (i,i), (i,j2), (j1,i), (j1,j2)
+):
+    """Per pair and image row: ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for the four (a, b)."""
+    p, y = wp.tid()
+    e1 = pairs[p][0]
+    e2 = pairs[p][1]
+    edge = edges[e1]
+    s = edge[0]
+    c = edge[1]
+    M_ii = mat66()
+    M_ij = mat66()
+    M_ji = mat66()
+    M_jj = mat66()
+    for x in range(Epix.shape[2]):
+        q = schur_depth_weight(C[s, c, y, x], lam)
+        if q > 0.0:
+            a1 = q * Epix[e1, y, x, 0]
+            b1 = q * Epix[e1, y, x, 1]
+            a2 = Epix[e2, y, x, 0]
+            b2 = Epix[e2, y, x, 1]
+            M_ii = M_ii + wp.outer(a1, a2)
+            M_ij = M_ij + wp.outer(a1, b2)
+            M_ji = M_ji + wp.outer(b1, a2)
+            M_jj = M_jj + wp.outer(b1, b2)
+    wp.atomic_add(blocks, p, 0, M_ii)
+    wp.atomic_add(blocks, p, 1, M_ij)
+    wp.atomic_add(blocks, p, 2, M_ji)
+    wp.atomic_add(blocks, p, 3, M_jj)
+
+
+@wp.kernel
+def schur_rhs_kernel(
+    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2]
+    C: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth block (with prior)
+    wdepth: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth gradient (with prior)
+    edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
+    pose_edges: wp.array(dtype=wp.int32),  # [Ep] edges with i != j
+    lam: float,
+    out: wp.array(dtype=vec6, ndim=2),  # [E,2] out (accumulated): sum_p E_{e,i} Q w, sum_p E_{e,j} Q w
+):
+    """Per pose edge and image row, the depth part of the reduced gradient ``E C^-1 w``."""
+    k, y = wp.tid()
+    e = pose_edges[k]
+    s = edges[e][0]
+    c = edges[e][1]
+    acc_i = vec6()
+    acc_j = vec6()
+    for x in range(Epix.shape[2]):
+        qw = schur_depth_weight(C[s, c, y, x], lam) * wdepth[s, c, y, x]
+        if qw != 0.0:
+            acc_i = acc_i + qw * Epix[e, y, x, 0]
+            acc_j = acc_j + qw * Epix[e, y, x, 1]
+    wp.atomic_add(out, e, 0, acc_i)
+    wp.atomic_add(out, e, 1, acc_j)
+
+
+@wp.kernel
+def schur_scatter_kernel(
+    blocks: wp.array(dtype=mat66, ndim=2),  # [P,4] schur_pairs_kernel's blocks
+    pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2), e1 <= e2
+    edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
+    S: wp.array(dtype=wp.float64, ndim=2),  # [6n,6n] out (accumulated): minus the blocks
+):
+    """Subtract the pair blocks from the reduced camera system in float64; a pair with
+    ``e1 != e2`` stands for (e2, e1) too, whose blocks are the transposes."""
+    p, k, a, b = wp.tid()
+    e1 = pairs[p][0]
+    e2 = pairs[p][1]
+    r = edges[e1][0]  # (i, .) blocks
+    if k >= 2:
+        r = edges[e1][2]  # (j1, .)
+    c = edges[e1][0]  # (., i)
+    if k == 1 or k == 3:
+        c = edges[e2][2]  # (., j2)
+    v = -wp.float64(blocks[p, k][a, b])
+    wp.atomic_add(S, 6 * r + a, 6 * c + b, v)
+    if e1 != e2:
+        wp.atomic_add(S, 6 * c + b, 6 * r + a, v)
+
+
+@wp.kernel
+def pose_system_kernel(
+    H: wp.array(dtype=mat66, ndim=2),  # [E,3] H_ii, H_ij, H_jj
+    g: wp.array(dtype=vec6, ndim=2),  # [E,2] v_i, v_j
+    depth_rhs: wp.array(dtype=vec6, ndim=2),  # [E,2] schur_rhs_kernel's E C^-1 w
+    edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
+    pose_edges: wp.array(dtype=wp.int32),  # [Ep]
+    S: wp.array(dtype=wp.float64, ndim=2),  # [6n,6n] out (accumulated): + B
+    rhs: wp.array(dtype=wp.float64),  # [6n] out (accumulated): + v - E C^-1 w
+):
+    """Add the pose blocks B of each pose edge (``H_ji = H_ij^T``) and the reduced gradient, in float64."""
+    k, a, b = wp.tid()
+    e = pose_edges[k]
+    i = 6 * edges[e][0]
+    j = 6 * edges[e][2]
+    wp.atomic_add(S, i + a, i + b, wp.float64(H[e, 0][a, b]))
+    wp.atomic_add(S, i + a, j + b, wp.float64(H[e, 1][a, b]))
+    wp.atomic_add(S, j + b, i + a, wp.float64(H[e, 1][a, b]))
+    wp.atomic_add(S, j + a, j + b, wp.float64(H[e, 2][a, b]))
+    if b == 0:
+        wp.atomic_add(rhs, i + a, wp.float64(g[e, 0][a]) - wp.float64(depth_rhs[e, 0][a]))
+        wp.atomic_add(rhs, j + a, wp.float64(g[e, 1][a]) - wp.float64(depth_rhs[e, 1][a]))
+
+
+@wp.kernel
+def backsub_coupling_kernel(
+    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2]
+    edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
+    pose_edges: wp.array(dtype=wp.int32),  # [Ep]
+    dxi: wp.array(dtype=vec6),  # [n] pose steps
+    acc: wp.array(dtype=float, ndim=4),  # [n,C,h,w] out (accumulated): sum_e E_e(p) . dxi
+):
+    """The pose part of the back-substitution, ``E^T dxi``, per depth variable."""
+    k, y, x = wp.tid()
+    e = pose_edges[k]
+    edge = edges[e]
+    t = wp.dot(Epix[e, y, x, 0], dxi[edge[0]]) + wp.dot(Epix[e, y, x, 1], dxi[edge[2]])
+    if t != 0.0:
+        wp.atomic_add(acc, edge[0], edge[1], y, x, t)
+
+
+@wp.kernel
+def depth_candidate_kernel(
+    disp: wp.array(dtype=float, ndim=4),  # [n,C,h,w] current inverse depth, 1/m
+    C: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth block (with prior)
+    wdepth: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth gradient (with prior)
+    coupling: wp.array(dtype=float, ndim=4),  # [n,C,h,w] E^T dxi (backsub_coupling_kernel)
+    lam: float,
+    min_disp: float,  # 1/m
+    cand: wp.array(dtype=float, ndim=4),  # [n,C,h,w] out: max(d + dd, min_disp) where d > 0, else 0
+    nonfinite: wp.array(dtype=wp.int32),  # [1] out (accumulated): count of non-finite dd
+):
+    """Back-substitute ``dd = Q (w - E^T dxi)`` (eq. 10) and form the candidate inverse depths."""
+    s, c, y, x = wp.tid()
+    dd = schur_depth_weight(C[s, c, y, x], lam) * (wdepth[s, c, y, x] - coupling[s, c, y, x])
+    if not wp.isfinite(dd):
+        wp.atomic_add(nonfinite, 0, 1)
+    d = disp[s, c, y, x]
+    if d > 0.0:
+        cand[s, c, y, x] = wp.max(d + dd, min_disp)
+    else:
+        cand[s, c, y, x] = 0.0
+
+
+@wp.kernel
+def pose_candidate_kernel(
+    poses: wp.array(dtype=wp.transform),  # [n] T_w_b
+    dxi: wp.array(dtype=vec6),  # [n] body-frame steps (rho, phi)
+    cand: wp.array(dtype=wp.transform),  # [n] out: T_w_b @ Exp(dxi)
+):
+    s = wp.tid()
+    cand[s] = se3_retract(poses[s], dxi[s])

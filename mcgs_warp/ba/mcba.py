@@ -7,14 +7,21 @@ Each iteration runs :func:`mcgs_warp.kernels.ba.mcba_linearize_kernel` over all
     [ E^T C ] [dd ] = [w]          (eq. 9)
 
 into per-edge pose blocks, per-pixel couplings and the diagonal depth block C.
-Python eliminates the depths with the Schur complement (eq. 10, ``C^-1 = 1/C``):
-``(B - E C^-1 E^T) dxi = v - E C^-1 w``, solves the small dense pose system with
-SciPy, back-substitutes ``dd = C^-1 (w - E^T dxi)``, and accepts the step only if
-the robust cost falls (Levenberg-Marquardt: otherwise the damping grows). The
-first keyframe of the window is held fixed (gauge).
+The depths are eliminated with the Schur complement (eq. 10, ``C^-1 = 1/C``),
+``(B - E C^-1 E^T) dxi = v - E C^-1 w``, sparsely and on the device: a depth of view
+(i, ci) couples only to pose i and to the far poses of the edges leaving (i, ci), so
+:func:`~mcgs_warp.kernels.ba.schur_pairs_kernel` reduces, for every pair of pose edges
+leaving one view, four 6x6 blocks; Python adds them (and B's per-edge blocks) into the
+6n x 6n reduced camera system. Work and memory grow with edges (and edge pairs) x grid
+pixels, never with keyframes^2 beyond that small system. SciPy solves it; the
+back-substitution ``dd = C^-1 (w - E^T dxi)``, the candidate state and its cost stay on
+the device, and the step is accepted only if the robust cost falls
+(Levenberg-Marquardt: otherwise the damping grows). All depth arrays are window-sized
+(slot s = ``keyframes[s]``); the buffer is read once and written back after the solve.
+The first keyframe of the window is held fixed (gauge).
 
 An optional depth prior (sensor or JDSA-scaled monocular depth) adds
-``prior_weight * (1/prior - d)^2`` per pixel, in inverse depth.
+``0.5 * prior_weight * confidence * (1/prior - d)^2`` per pixel, in inverse depth.
 
 A correspondence whose target or weight is NaN or infinite counts with weight 0 (the
 kernels test it, so the cost and the linearization agree): it drops out, and the
@@ -23,6 +30,7 @@ rest of the problem is still solved.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,7 +38,6 @@ import scipy.linalg
 import warp as wp
 
 from ..buffer import KeyframeBuffer
-from ..geometry import matrix_to_transform7, se3_exp
 from ..kernels.camera import FAR
 
 
@@ -67,13 +74,7 @@ class MCBA:
 
     # ----------------------------------------------------------------------------------
     def _arrays(self, edges, targets, weights):
-        dev = self.buf.device
-        e4 = np.ascontiguousarray(edges[:, :4], dtype=np.int32)
-        return (
-            wp.array(e4, dtype=wp.vec4i, device=dev),
-            wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=wp.vec2, device=dev),
-            wp.array(np.ascontiguousarray(weights, dtype=np.float32), dtype=float, device=dev),
-        )
+        return _edge_arrays(edges, targets, weights, self.buf.device)
 
     def prior_target(self, keyframes) -> tuple[np.ndarray, np.ndarray]:
         """Inverse-depth prior [k,C,h,w] of ``keyframes`` (JDSA-scaled) and its per-pixel
@@ -88,124 +89,79 @@ class MCBA:
         return np.where(mask, 1.0 / np.where(mask, scaled, 1.0), 0.0), mask * buf.prior_conf[keyframes]
 
     def cost(self, edge_arrays, n_edges: int, disp=None, poses=None, prior=None) -> float:
-        """Robust reprojection cost plus the prior cost at the given (or current) state."""
+        """Robust reprojection cost plus the prior cost at the given (or current) state.
+
+        ``edge_arrays``: :meth:`_arrays` of edges indexed like ``disp`` [K,C,h,w] and
+        ``poses`` [K] (default: the buffer's); ``prior``: ``(keyframes, target, mask)``
+        as :meth:`prior_target` returns them."""
+        from ..kernels.ba import window_copy_kernel
+
         buf, dev = self.buf, self.buf.device
-        e_arr, t_arr, w_arr = edge_arrays
         disp = buf.disp if disp is None else disp
         poses = buf.poses if poses is None else poses
-        cost = wp.zeros(n_edges, dtype=float, device=dev)
-        from ..kernels.ba import mcba_cost_kernel
-
-        wp.launch(
-            mcba_cost_kernel,
-            dim=(n_edges, buf.h, buf.w),
-            inputs=[buf.rays, disp, poses, buf.T_b_c, buf.cameras, e_arr, t_arr, w_arr, self.cfg.huber_delta],
-            outputs=[cost],
-            device=dev,
-        )
-        total = float(cost.numpy().astype(np.float64).sum())
+        prior_dev = None
         if prior is not None:
             kfs, target, mask = prior
-            d = disp.numpy()[kfs].astype(np.float64)
-            total += 0.5 * self.cfg.prior_weight * float(np.sum(mask * (target - d) ** 2))
-        return total
+            kf = wp.array(np.asarray(kfs, dtype=np.int32), dtype=wp.int32, device=dev)
+            window = wp.empty((len(kfs),) + tuple(disp.shape[1:]), dtype=float, device=dev)
+            scratch = wp.empty(len(kfs), dtype=wp.transform, device=dev)
+            wp.launch(window_copy_kernel, dim=window.shape, inputs=[kf, 1, disp, poses, window, scratch], device=dev)
+            prior_dev = (window, *(wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=dev) for a in (target, mask)))
+        return _total_cost(buf, self.cfg, edge_arrays, n_edges, disp, poses, prior_dev)
+
+    def reduced_system(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, lam: float | None = None):
+        """Linearize once at the current state and return the reduced camera system
+        ``S`` [6n,6n] and ``rhs`` [6n] (float64, slots in the order of ``keyframes``;
+        no gauge, no damping of ``S``; depth block damped by ``lam``, default the
+        configured initial damping). For tests and diagnostics; :meth:`solve` uses the same path."""
+        edges = np.asarray(edges)
+        keyframes = self._window(edges, keyframes)
+        prior = self.prior_target(keyframes) if self.cfg.prior_weight > 0 else None
+        win = _Window(self.buf, self.cfg, keyframes, edges, targets, weights, prior)
+        win.linearize()
+        return win.reduce(self.cfg.lm_lambda if lam is None else lam)
+
+    @staticmethod
+    def _window(edges: np.ndarray, keyframes) -> list[int]:
+        if keyframes is None:
+            keyframes = np.unique(np.concatenate([edges[:, 0], edges[:, 2]]))
+        return [int(k) for k in keyframes]
 
     # ----------------------------------------------------------------------------------
     def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None) -> MCBAStats:
         """Run LM iterations over ``edges`` [E,>=4] with correspondences ``targets``
         [E,h,w,2] (reduced-grid pixels) and ``weights`` [E,h,w].
 
-        ``keyframes``: the window (default: every keyframe an edge touches); ``fixed``:
-        keyframes whose pose is held (default: the first of the window)."""
-        import time
-
-        from ..kernels.ba import mat66, mcba_linearize_kernel
-        from ..kernels.se3 import vec6
-
-        buf, cfg, dev = self.buf, self.cfg, self.buf.device
+        ``keyframes``: the window (default: every keyframe an edge touches; every edge
+        must stay inside it); ``fixed``: keyframes whose pose is held (default: the
+        first of the window)."""
+        cfg = self.cfg
         edges = np.asarray(edges)
-        if keyframes is None:
-            keyframes = np.unique(np.concatenate([edges[:, 0], edges[:, 2]]))
-        keyframes = [int(k) for k in keyframes]
+        keyframes = self._window(edges, keyframes)
         fixed = {keyframes[0]} if fixed is None else {int(k) for k in fixed}
-        slot = {k: s for s, k in enumerate(keyframes)}
-        n, C, h, w = len(keyframes), len(buf.rig), buf.h, buf.w
-        E = len(edges)
         stats = MCBAStats()
-        if E == 0:
+        if len(edges) == 0:
             return stats
-        arrays = self._arrays(edges, targets, weights)
-        prior = None
-        if cfg.prior_weight > 0:
-            target, mask = self.prior_target(keyframes)
-            prior = (keyframes, target, mask)
+        prior = self.prior_target(keyframes) if cfg.prior_weight > 0 else None
+        win = _Window(self.buf, cfg, keyframes, edges, targets, weights, prior)
         lam = cfg.lm_lambda
-        current = self.cost(arrays, E, prior=prior)
+        current = win.cost(win.disp, win.poses)
         stats.cost.append(current)
         free = [s for s, k in enumerate(keyframes) if k not in fixed]
         free_idx = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in free]) if free else np.zeros(0, int)
 
         for _ in range(cfg.iterations):
             t0 = time.perf_counter()
-            H = wp.zeros((E, 3), dtype=mat66, device=dev)
-            g = wp.zeros((E, 2), dtype=vec6, device=dev)
-            Epix = wp.zeros((E, h, w, 2), dtype=vec6, device=dev)
-            Cd = wp.zeros((buf.capacity, C, h, w), dtype=float, device=dev)
-            wd = wp.zeros((buf.capacity, C, h, w), dtype=float, device=dev)
-            cost = wp.zeros(E, dtype=float, device=dev)
-            wp.launch(
-                mcba_linearize_kernel,
-                dim=(E, h, w),
-                inputs=[buf.rays, buf.disp, buf.poses, buf.T_b_c, buf.cameras, *arrays, cfg.huber_delta],
-                outputs=[H, g, Epix, Cd, wd, cost],
-                device=dev,
-            )
-            Hn = H.numpy().astype(np.float64)
-            gn = g.numpy().astype(np.float64)
-            En = Epix.numpy().astype(np.float64).reshape(E, h * w, 2, 6)
-            Cn = Cd.numpy()[keyframes].astype(np.float64).reshape(n, C, h * w)
-            stats.keyframes, stats.depth_info = keyframes, Cn.reshape(n, C, h, w).copy()
-            wn = wd.numpy()[keyframes].astype(np.float64).reshape(n, C, h * w)
+            win.linearize()
+            stats.keyframes = keyframes
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0
-
-            disp_now = buf.disp.numpy()[keyframes].astype(np.float64).reshape(n, C, h * w)
-            if prior is not None:
-                pw = cfg.prior_weight * prior[2].reshape(n, C, h * w)
-                Cn = Cn + pw
-                wn = wn + pw * (prior[1].reshape(n, C, h * w) - disp_now)
-
-            # Pose blocks.
-            B = np.zeros((6 * n, 6 * n))
-            v = np.zeros(6 * n)
-            G = np.zeros((n, C, h * w, 6 * n))  # pose-depth coupling per depth variable
-            for e, (i, ci, j) in enumerate(edges[:, :3]):
-                if i == j:
-                    continue
-                si, sj = slot[i], slot[j]
-                a, b = slice(6 * si, 6 * si + 6), slice(6 * sj, 6 * sj + 6)
-                B[a, a] += Hn[e, 0]
-                B[a, b] += Hn[e, 1]
-                B[b, a] += Hn[e, 1].T
-                B[b, b] += Hn[e, 2]
-                v[a] += gn[e, 0]
-                v[b] += gn[e, 1]
-                G[si, ci, :, a] += En[e, :, 0]
-                G[si, ci, :, b] += En[e, :, 1]
-
-            # Schur complement with damped depth block.
-            Cdamp = Cn * (1.0 + lam) + 1e-9
-            Q = np.where(Cn > 0, 1.0 / Cdamp, 0.0)
-            Gf = G.reshape(n * C, h * w, 6 * n)
-            Qf = Q.reshape(n * C, h * w)
-            wf = wn.reshape(n * C, h * w)
-            S = B - np.einsum("npa,np,npb->ab", Gf, Qf, Gf, optimize=True)
-            rhs = v - np.einsum("npa,np->a", Gf, Qf * wf, optimize=True)
+            S, rhs = win.reduce(lam)  # Schur complement with the damped depth block
             t2 = time.perf_counter()
             stats.seconds_reduce += t2 - t1
 
             while True:
-                dxi = np.zeros(6 * n)
+                dxi = np.zeros(6 * win.n)
                 if len(free_idx):
                     Sf = S[np.ix_(free_idx, free_idx)]
                     Sf = Sf + lam * np.diag(np.diag(Sf)) + 1e-9 * np.eye(len(free_idx))
@@ -213,32 +169,15 @@ class MCBA:
                         dxi[free_idx] = scipy.linalg.solve(Sf, rhs[free_idx], assume_a="sym")
                     except (np.linalg.LinAlgError, ValueError):
                         dxi[:] = 0.0
-                Cdamp = Cn * (1.0 + lam) + 1e-9
-                Q = np.where(Cn > 0, 1.0 / Cdamp, 0.0)
-                dd = Q * (wn - np.einsum("ncpa,a->ncp", G, dxi))
-                if not (np.all(np.isfinite(dxi)) and np.all(np.isfinite(dd))):
+                if not (np.all(np.isfinite(dxi)) and win.candidate(dxi, lam)):
                     lam *= 10.0
                     stats.rejected += 1
                     if lam > 1e8:
                         break
                     continue
-                # Candidate state.
-                T_old = buf.get_poses()
-                T_new = T_old.copy()
-                for s_, k in enumerate(keyframes):
-                    T_new[k] = T_old[k] @ se3_exp(dxi[6 * s_ : 6 * s_ + 6])
-                disp_all = buf.disp.numpy()
-                cand = disp_all.copy()
-                cand[keyframes] = np.maximum(disp_now + dd, cfg.min_disp).reshape(n, C, h, w).astype(np.float32)
-                cand[keyframes] = np.where(disp_all[keyframes] > 0, cand[keyframes], 0.0)
-                disp_c = wp.array(cand, dtype=float, device=dev)
-                poses_c = wp.array(matrix_to_transform7(T_new).astype(np.float32), dtype=wp.transform, device=dev)
-                poses_full = wp.clone(buf.poses)
-                wp.copy(poses_full, poses_c, count=len(T_new))
-                new_cost = self.cost(arrays, E, disp=disp_c, poses=poses_full, prior=prior)
+                new_cost = win.cost(win.disp_c, win.poses_c)
                 if new_cost <= current:
-                    buf.disp.assign(disp_c)
-                    buf.poses.assign(poses_full)
+                    win.accept()
                     current = new_cost
                     stats.cost.append(current)
                     stats.accepted += 1
@@ -251,4 +190,200 @@ class MCBA:
             stats.seconds_solve += time.perf_counter() - t2
             if lam > 1e8:
                 break
+        if stats.accepted:
+            win.store()
+        if stats.keyframes:
+            stats.depth_info = win.Cd.numpy().astype(np.float64)
         return stats
+
+
+class _Window:
+    """Device state of one solve: the window's keyframes in slots ``0..n-1``.
+
+    Every array is window-sized (``[n,C,h,w]`` depths, ``[n]`` poses) or edge-sized
+    (``[E,h,w,...]`` couplings), never buffer-sized: edges are rewritten to slot indices
+    once, the window's inverse depths and poses are gathered from the buffer once and
+    written back by :meth:`store`. Inside the LM loop only the reduced camera system
+    (``S`` [6n,6n], ``rhs`` [6n]), the 6n step and a few scalars cross between host and
+    device."""
+
+    def __init__(self, buf: KeyframeBuffer, cfg: MCBAConfig, keyframes: list, edges: np.ndarray, targets, weights, prior=None):
+        from ..kernels.ba import mat66, window_copy_kernel
+        from ..kernels.se3 import vec6
+
+        self.buf, self.cfg, dev = buf, cfg, buf.device
+        n, C, h, w = len(keyframes), len(buf.rig), buf.h, buf.w
+        self.n, self.dev, self.shape = n, dev, (n, C, h, w)
+        lut = np.full(max(int(edges[:, [0, 2]].max()), max(keyframes)) + 1, -1)
+        lut[keyframes] = np.arange(n)
+        ends = lut[edges[:, [0, 2]]]
+        if np.any(ends < 0):
+            raise ValueError(f"edges reach keyframes outside the window: {sorted(set(edges[:, [0, 2]][ends < 0].tolist()))}")
+        sedges = np.ascontiguousarray(edges[:, :4], dtype=np.int32)
+        sedges[:, 0], sedges[:, 2] = ends[:, 0], ends[:, 1]
+        self.arrays = _edge_arrays(sedges, targets, weights, dev)
+        E = self.E = len(sedges)
+
+        self.kf = wp.array(np.asarray(keyframes, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.disp = wp.empty(self.shape, dtype=float, device=dev)
+        self.poses = wp.empty(n, dtype=wp.transform, device=dev)
+        wp.launch(window_copy_kernel, dim=self.shape, inputs=[self.kf, 1, buf.disp, buf.poses, self.disp, self.poses], device=dev)
+        self.disp_c = wp.empty_like(self.disp)
+        self.poses_c = wp.empty_like(self.poses)
+
+        # Linearization (eq. 9), the depth terms with the prior, back-substitution.
+        self.H = wp.empty((E, 3), dtype=mat66, device=dev)
+        self.g = wp.empty((E, 2), dtype=vec6, device=dev)
+        self.Epix = wp.empty((E, h, w, 2), dtype=vec6, device=dev)
+        self.Cd = wp.empty(self.shape, dtype=float, device=dev)
+        self.wd = wp.empty(self.shape, dtype=float, device=dev)
+        self.prior = None
+        self.Ct, self.wt = self.Cd, self.wd  # depth block and gradient with the prior
+        if prior is not None:
+            self.prior = tuple(wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=dev) for a in prior)
+            self.Ct, self.wt = wp.empty_like(self.Cd), wp.empty_like(self.wd)
+        self.edge_cost = wp.empty(E, dtype=float, device=dev)
+        self.total = wp.empty(1, dtype=wp.float64, device=dev)
+        self.coupling = wp.empty(self.shape, dtype=float, device=dev)
+        self.dxi = wp.empty(n, dtype=vec6, device=dev)
+        self.nonfinite = wp.empty(1, dtype=wp.int32, device=dev)
+
+        # Sparsity: pose edges (i != j), and the pairs (e1 <= e2) of pose edges leaving one
+        # view (every pose edge pairs with itself, so P > 0 exactly when there are pose edges).
+        si, ci, sj = sedges[:, 0], sedges[:, 1], sedges[:, 2]
+        pe = np.flatnonzero(si != sj)
+        key = si[pe].astype(np.int64) * C + ci[pe]
+        order = pe[np.argsort(key, kind="stable")]
+        groups = np.split(order, np.flatnonzero(np.diff(np.sort(key, kind="stable"))) + 1) if len(pe) else []
+        pairs = np.array([(a, b) for grp in groups for k, a in enumerate(grp) for b in grp[k:]], dtype=np.int32).reshape(-1, 2)
+        self.pe, self.P = pe, len(pairs)
+        self.pose_edges = wp.array(pe.astype(np.int32), dtype=wp.int32, device=dev)
+        self.pairs = wp.array(pairs, dtype=wp.vec2i, device=dev)
+        self.blocks = wp.empty((self.P, 4), dtype=mat66, device=dev)
+        self.depth_rhs = wp.empty((E, 2), dtype=vec6, device=dev)
+
+        n6 = 6 * n
+        self.S = wp.empty((n6, n6), dtype=wp.float64, device=dev)
+        self.rhs = wp.empty(n6, dtype=wp.float64, device=dev)
+
+    # ----------------------------------------------------------------------------------
+    def linearize(self) -> None:
+        """Run the MCBA kernel at the current window state; add the prior's depth terms."""
+        from ..kernels.ba import mcba_linearize_kernel, prior_terms_kernel
+
+        buf, cfg, dev = self.buf, self.cfg, self.dev
+        for arr in (self.H, self.g, self.Epix, self.Cd, self.wd, self.edge_cost):
+            arr.zero_()
+        wp.launch(
+            mcba_linearize_kernel,
+            dim=(self.E, buf.h, buf.w),
+            inputs=[buf.rays, self.disp, self.poses, buf.T_b_c, buf.cameras, *self.arrays, cfg.huber_delta],
+            outputs=[self.H, self.g, self.Epix, self.Cd, self.wd, self.edge_cost],
+            device=dev,
+        )
+        if self.prior is not None:
+            wp.launch(
+                prior_terms_kernel,
+                dim=self.shape,
+                inputs=[self.Cd, self.wd, self.disp, *self.prior, cfg.prior_weight],
+                outputs=[self.Ct, self.wt],
+                device=dev,
+            )
+        wp.synchronize_device(dev)
+
+    def reduce(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """Reduced camera system ``S = B - E Q E^T`` [6n,6n] and ``rhs = v - E Q w`` [6n]
+        (float64) of the last linearization, with the depth block damped by ``lam``."""
+        from ..kernels.ba import pose_system_kernel, schur_pairs_kernel, schur_rhs_kernel, schur_scatter_kernel
+
+        dev, h, e_arr = self.dev, self.buf.h, self.arrays[0]
+        for arr in (self.blocks, self.depth_rhs, self.S, self.rhs):
+            arr.zero_()
+        if self.P:
+            wp.launch(schur_pairs_kernel, dim=(self.P, h), inputs=[self.Epix, self.Ct, e_arr, self.pairs, lam], outputs=[self.blocks], device=dev)
+            wp.launch(schur_scatter_kernel, dim=(self.P, 4, 6, 6), inputs=[self.blocks, self.pairs, e_arr], outputs=[self.S], device=dev)
+            wp.launch(
+                schur_rhs_kernel, dim=(len(self.pe), h), inputs=[self.Epix, self.Ct, self.wt, e_arr, self.pose_edges, lam], outputs=[self.depth_rhs], device=dev
+            )
+            wp.launch(pose_system_kernel, dim=(len(self.pe), 6, 6), inputs=[self.H, self.g, self.depth_rhs, e_arr, self.pose_edges], outputs=[self.S, self.rhs], device=dev)
+        return self.S.numpy().copy(), self.rhs.numpy().copy()
+
+    def candidate(self, dxi: np.ndarray, lam: float) -> bool:
+        """Candidate state ``T @ Exp(dxi)``, ``max(d + dd, min_disp)`` into ``poses_c``,
+        ``disp_c``; False where the back-substituted ``dd`` is not finite."""
+        from ..kernels.ba import backsub_coupling_kernel, depth_candidate_kernel, pose_candidate_kernel
+
+        dev = self.dev
+        self.dxi.assign(np.asarray(dxi, dtype=np.float32).reshape(self.n, 6))
+        self.coupling.zero_()
+        self.nonfinite.zero_()
+        if len(self.pe):
+            wp.launch(
+                backsub_coupling_kernel,
+                dim=(len(self.pe), self.buf.h, self.buf.w),
+                inputs=[self.Epix, self.arrays[0], self.pose_edges, self.dxi],
+                outputs=[self.coupling],
+                device=dev,
+            )
+        wp.launch(
+            depth_candidate_kernel,
+            dim=self.shape,
+            inputs=[self.disp, self.Ct, self.wt, self.coupling, lam, self.cfg.min_disp],
+            outputs=[self.disp_c, self.nonfinite],
+            device=dev,
+        )
+        wp.launch(pose_candidate_kernel, dim=self.n, inputs=[self.poses, self.dxi], outputs=[self.poses_c], device=dev)
+        return int(self.nonfinite.numpy()[0]) == 0
+
+    def cost(self, disp, poses) -> float:
+        """Robust reprojection cost plus the prior cost of a window state (float64 sum)."""
+        prior = None if self.prior is None else (disp, *self.prior)
+        return _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.edge_cost, self.total)
+
+    def accept(self) -> None:
+        self.disp, self.disp_c = self.disp_c, self.disp
+        self.poses, self.poses_c = self.poses_c, self.poses
+
+    def store(self) -> None:
+        """Write the window's state back into the keyframe buffer."""
+        from ..kernels.ba import window_copy_kernel
+
+        buf = self.buf
+        wp.launch(window_copy_kernel, dim=self.shape, inputs=[self.kf, 0, buf.disp, buf.poses, self.disp, self.poses], device=self.dev)
+
+
+def _edge_arrays(edges: np.ndarray, targets, weights, device):
+    """Device arrays of edges [E] vec4i, correspondences [E,h,w] vec2 and weights [E,h,w]
+    (on the CPU the float32 host arrays are shared, not copied: they are the largest inputs)."""
+    device = wp.get_device(device)
+    e4 = np.ascontiguousarray(edges[:, :4], dtype=np.int32)
+    return (
+        wp.array(e4, dtype=wp.vec4i, device=device),
+        wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=wp.vec2, device=device, copy=not device.is_cpu),
+        wp.array(np.ascontiguousarray(weights, dtype=np.float32), dtype=float, device=device, copy=not device.is_cpu),
+    )
+
+
+def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int, disp, poses, prior=None, edge_cost=None, total=None) -> float:
+    """Robust reprojection cost of ``edge_arrays`` at ``disp`` [K,C,h,w] and ``poses`` [K]
+    (indexed as the edges are) plus, with ``prior = (disp_window, target, mask)``
+    (device arrays [n,C,h,w]), the prior cost; summed in float64 on the device.
+    ``edge_cost`` [E] and ``total`` [1] are optional scratch arrays."""
+    from ..kernels.ba import mcba_cost_kernel, prior_cost_kernel, sum_float64_kernel
+
+    dev = buf.device
+    edge_cost = wp.empty(n_edges, dtype=float, device=dev) if edge_cost is None else edge_cost
+    total = wp.empty(1, dtype=wp.float64, device=dev) if total is None else total
+    edge_cost.zero_()
+    total.zero_()
+    wp.launch(
+        mcba_cost_kernel,
+        dim=(n_edges, buf.h, buf.w),
+        inputs=[buf.rays, disp, poses, buf.T_b_c, buf.cameras, *edge_arrays, cfg.huber_delta],
+        outputs=[edge_cost],
+        device=dev,
+    )
+    wp.launch(sum_float64_kernel, dim=n_edges, inputs=[edge_cost], outputs=[total], device=dev)
+    if prior is not None:
+        wp.launch(prior_cost_kernel, dim=prior[0].shape, inputs=[*prior, cfg.prior_weight], outputs=[total], device=dev)
+    return float(total.numpy()[0])
