@@ -1,8 +1,11 @@
-"""Per-Gaussian kernels of the mapping stage: Adam, pose-consistent moves, regularizers."""
+"""Kernels of the mapping stage: Adam, pose-consistent moves, regularizers, the keyframe
+views and pose corrections, densification statistics and the finiteness guard."""
 
 from __future__ import annotations
 
 import warp as wp
+
+from .se3 import mat66, se3_retract, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -20,6 +23,7 @@ def adam_kernel(
     bias1: float,  # 1 - beta1^t
     bias2: float,  # 1 - beta2^t
 ):
+    """One Adam step on a flat parameter array (Gaussians, exposures, pose corrections)."""
     i = wp.tid()
     g = grad[i]
     mi = beta1 * m[i] + (1.0 - beta1) * g
@@ -95,3 +99,75 @@ def isotropy_loss_kernel(
             g[a] = g[a] + sg * coef
     wp.atomic_add(loss, 0, weight * total)
     grad[i] = grad[i] + weight * wp.cw_mul(g, s)  # chain rule through exp
+
+
+@wp.kernel
+def keyframe_viewmats_kernel(
+    poses: wp.array(dtype=wp.transform),  # [K] T_w_b
+    T_b_c: wp.array(dtype=wp.transform),  # [C] camera -> body
+    keyframe: int,
+    viewmats: wp.array(dtype=wp.mat44),  # [C] out: T_c_w of the keyframe's cameras
+):
+    """World -> camera matrices ``inv(T_w_b @ T_b_c)`` of one keyframe's rig views."""
+    c = wp.tid()
+    T = wp.transform_inverse(wp.transform_multiply(poses[keyframe], T_b_c[c]))
+    R = wp.quat_to_matrix(wp.transform_get_rotation(T))
+    t = wp.transform_get_translation(T)
+    viewmats[c] = wp.mat44(R[0, 0], R[0, 1], R[0, 2], t[0], R[1, 0], R[1, 1], R[1, 2], t[1], R[2, 0], R[2, 1], R[2, 2], t[2], 0.0, 0.0, 0.0, 1.0)
+
+
+@wp.kernel
+def body_pose_gradient_kernel(
+    camera_grads: wp.array(dtype=vec6),  # [C] dL/d xi_c, camera-frame increments
+    adjoints_T: wp.array(dtype=mat66),  # [C] Ad(T_c_b)^T
+    n_cameras: int,
+    grad: wp.array(dtype=float),  # [6] out: dL/d xi_b, body-frame increment
+):
+    """Camera-pose gradients to the rig body: ``xi_c = Ad(T_c_b) xi_b`` so
+    ``dL/d xi_b = sum_c Ad(T_c_b)^T dL/d xi_c`` (launch with dim 1)."""
+    g = vec6()
+    for c in range(n_cameras):
+        g += adjoints_T[c] * camera_grads[c]
+    for i in range(6):
+        grad[i] = g[i]
+
+
+@wp.kernel
+def retract_pose_kernel(
+    poses: wp.array(dtype=wp.transform),  # [K] T_w_b
+    keyframe: int,
+    xi: wp.array(dtype=float),  # [6] body-frame increment (rho, phi), m and rad
+):
+    """``T_w_b <- T_w_b @ Exp(xi)`` for one keyframe, rotation renormalized (launch with dim 1)."""
+    T = se3_retract(poses[keyframe], vec6(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5]))
+    poses[keyframe] = wp.transform(wp.transform_get_translation(T), wp.normalize(wp.transform_get_rotation(T)))
+
+
+@wp.kernel
+def view_gradient_stats_kernel(
+    mean2d_grads: wp.array(dtype=wp.vec2),  # [C*N] dL/d projected mean, px^-1
+    visible: wp.array(dtype=wp.int32),  # [C*N]
+    n_gaussians: int,
+    n_views: int,
+    accum: wp.array(dtype=wp.float64),  # [N] accumulated sum over views of |dL/d mean2d|
+    count: wp.array(dtype=wp.float64),  # [N] accumulated number of views that saw the Gaussian
+):
+    """Densification statistics of one step (one thread per Gaussian, deterministic)."""
+    i = wp.tid()
+    s = float(0.0)
+    k = int(0)
+    for c in range(n_views):
+        j = c * n_gaussians + i
+        s += wp.length(mean2d_grads[j])
+        if visible[j] > 0:
+            k += 1
+    accum[i] = accum[i] + wp.float64(s)
+    count[i] = count[i] + wp.float64(k)
+
+
+@wp.kernel
+def count_nonfinite_kernel(values: wp.array(dtype=float), count: wp.array(dtype=wp.int32)):
+    """``count[0] += #`` NaN or Inf entries of a flat array."""
+    i = wp.tid()
+    if not wp.isfinite(values[i]):
+        wp.atomic_add(count, 0, 1)

@@ -6,9 +6,18 @@ nearest neighbours (SciPy ``cKDTree``; neighbouring splats then meet at about on
 sigma), unit rotation and opacity 0.9 (logit). Each
 Gaussian remembers the keyframe it was created from, so when tracking moves that
 keyframe its Gaussians move with it (paper eq. 12-13).
+
+The map also owns its densification: per Gaussian, the sum over mapping steps and
+views of ``|dL/d mean2d|`` and the number of views that saw it (device float64 arrays);
+:meth:`GaussianMap.densify_and_prune` clones small and splits large Gaussians whose
+mean view-space gradient is large, and prunes near-transparent and oversized ones (the
+3DGS adaptive density control). Every change of the Gaussians' order or number
+returns or follows an index (new -> old, -1 = new) so that optimizer state can follow.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -23,12 +32,21 @@ def logit(p):
     return np.log(p / (1.0 - p))
 
 
+@dataclass
+class DensifyReport:
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+
+
 class GaussianMap:
     def __init__(self, device=None):
         self.device = wp.get_device(device)
         self.gaussians = Gaussians.from_numpy(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), self.device)
         self.anchors = np.zeros(0, np.int32)  # keyframe id per Gaussian
         self._anchors_dev = None
+        self.grad_accum = wp.zeros(0, dtype=wp.float64, device=self.device)  # [N] sum of |dL/d mean2d| over steps and views
+        self.grad_count = wp.zeros(0, dtype=wp.float64, device=self.device)  # [N] views that saw it
 
     def __len__(self) -> int:
         return self.gaussians.n
@@ -45,25 +63,104 @@ class GaussianMap:
             "anchors": self.anchors.copy(),
         }
 
-    def set_numpy(self, d: dict) -> None:
+    def set_numpy(self, d: dict, index: np.ndarray | None = None) -> None:
+        """Replace the Gaussians by ``d`` (as :meth:`to_numpy` gives). With ``index``
+        ([N_new], source Gaussian or -1) the densification statistics follow; without,
+        they restart at zero."""
+        stats = self.statistics() if index is not None and self.grad_accum.shape[0] == len(self) else None
         self.gaussians = Gaussians.from_numpy(d["means"], d["quats"], d["log_scales"], d["opacity_logits"], d["colors"], self.device)
         self.anchors = np.asarray(d["anchors"], np.int32)
         self._anchors_dev = None
+        n = len(self)
+        acc, cnt = np.zeros(n), np.zeros(n)
+        if stats is not None:
+            ok = index >= 0
+            acc[ok], cnt[ok] = stats[0][index[ok]], stats[1][index[ok]]
+        self.set_statistics(acc, cnt)
+
+    def statistics(self) -> tuple[np.ndarray, np.ndarray]:
+        """Host copies of the densification statistics: (sum of |dL/d mean2d| [N], view count [N])."""
+        return self.grad_accum.numpy().copy(), self.grad_count.numpy().copy()
+
+    def set_statistics(self, accum, count) -> None:
+        """Set the densification statistics ([N] each, float64)."""
+        self.grad_accum = wp.array(np.asarray(accum, np.float64), dtype=wp.float64, device=self.device)
+        self.grad_count = wp.array(np.asarray(count, np.float64), dtype=wp.float64, device=self.device)
+
+    def accumulate_view_gradients(self, mean2d_grads: wp.array, visible: wp.array, n_views: int) -> None:
+        """Add one step's ``|dL/d mean2d|`` ([C*N] vec2, as ``Gradients.mean2d``) and
+        visibility ([C*N] int32) over its ``n_views`` views to the statistics."""
+        from ..kernels.mapping import view_gradient_stats_kernel
+
+        if len(self) == 0:
+            return
+        if self.grad_accum.shape[0] != len(self):  # the Gaussians were replaced without set_numpy
+            self.set_statistics(np.zeros(len(self)), np.zeros(len(self)))
+        wp.launch(view_gradient_stats_kernel, dim=len(self), inputs=[mean2d_grads, visible, len(self), int(n_views)], outputs=[self.grad_accum, self.grad_count], device=self.device)
 
     def append(self, means, colors, log_scales, anchor: int, quats=None, opacity_logits=None) -> int:
+        """Add ``n`` Gaussians (means [n,3] world m, colours [n,3], log-scales [n,3]; unit
+        rotation and the initial opacity unless given) anchored to keyframe ``anchor``."""
         n = len(means)
         quats = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)) if quats is None else quats
         opacity_logits = np.full(n, logit(INITIAL_OPACITY)) if opacity_logits is None else opacity_logits
         d = self.to_numpy()
         new = {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity_logits, "colors": colors, "anchors": np.full(n, anchor, np.int32)}
-        self.set_numpy({k: np.concatenate([d[k], np.asarray(new[k], dtype=d[k].dtype)]) for k in d})
+        before = len(self)
+        self.set_numpy({k: np.concatenate([d[k], np.asarray(new[k], dtype=d[k].dtype)]) for k in d}, np.concatenate([np.arange(before), -np.ones(n, int)]))
         return n
 
     def keep(self, mask: np.ndarray) -> int:
         """Keep the Gaussians where ``mask`` is true; returns how many were removed."""
         d = self.to_numpy()
-        self.set_numpy({k: v[mask] for k, v in d.items()})
+        self.set_numpy({k: v[mask] for k, v in d.items()}, np.nonzero(mask)[0])
         return int((~mask).sum())
+
+    def densify_and_prune(self, grad_threshold: float, split_scale: float, prune_opacity: float, prune_scale: float, max_gaussians: int, rng) -> tuple[DensifyReport, np.ndarray]:
+        """Adaptive density control from the accumulated statistics, which then restart.
+
+        Prune Gaussians with opacity below ``prune_opacity`` or largest scale above
+        ``prune_scale`` (m). Of the others, those whose mean ``|dL/d mean2d|`` per view
+        exceeds ``grad_threshold`` (at most ``max_gaussians`` in all) are cloned when
+        their largest scale is at most ``split_scale`` (m), else split in two children
+        sampled from the Gaussian (``rng``: NumPy generator) with scales / 1.6.
+        Returns the report and the index [N_new] of each new Gaussian's source (-1 = new)."""
+        d = self.to_numpy()
+        n = len(d["means"])
+        report = DensifyReport()
+        if n == 0:
+            return report, np.zeros(0, int)
+        accum, count = self.statistics()
+        mean_grad = accum / np.maximum(count, 1)
+        scale = np.exp(d["log_scales"]).max(1)
+        opacity = 1 / (1 + np.exp(-d["opacity_logits"]))
+        keep = (opacity >= prune_opacity) & (scale <= prune_scale)
+        report.pruned = int((~keep).sum())
+        hot = keep & (mean_grad > grad_threshold)
+        room = max(max_gaussians - int(keep.sum()), 0)
+        hot_idx = np.nonzero(hot)[0][:room]
+        clone = hot_idx[scale[hot_idx] <= split_scale]
+        split = hot_idx[scale[hot_idx] > split_scale]
+        report.cloned, report.split = len(clone), len(split)
+        index = [np.nonzero(keep & ~np.isin(np.arange(n), split))[0], clone]
+        new = {key: [v[index[0]], v[clone]] for key, v in d.items()}
+        if len(split):
+            from ..kernels.reference import quat_to_rotation
+
+            R = quat_to_rotation(d["quats"][split])
+            s = np.exp(d["log_scales"][split])
+            for _ in range(2):
+                offset = np.einsum("nij,nj->ni", R, rng.normal(size=s.shape) * s)
+                for key, v in d.items():
+                    val = v[split]
+                    if key == "means":
+                        val = val + offset
+                    elif key == "log_scales":
+                        val = val - np.log(1.6)
+                    new[key].append(val)
+                index.append(-np.ones(len(split), int))
+        self.set_numpy({key: np.concatenate(parts) for key, parts in new.items()})  # statistics restart
+        return report, np.concatenate(index)
 
     # ----------------------------------------------------------------------------------
     def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0) -> int:

@@ -1,75 +1,224 @@
-"""Image losses of the mapping objective (paper eq. 11, with the 3DGS colour term) and
-their gradients w.r.t. the rendered images.
+"""The image part of the mapping objective (paper eq. 11, with the 3DGS colour term), on
+the device: values and gradients w.r.t. the rendered images and the exposures.
 
-Colour: ``(1 - l_ssim) * L1 + l_ssim * (1 - SSIM)`` (SSIM and its gradient from
-:mod:`mcgs_warp.eval.metrics`). Depth: L1 where the target depth is known.
-Per-image arrays on the host ([H,W,3] / [H,W]);
-the Gaussian-space scale regularizer lives in :mod:`mcgs_warp.kernels.mapping`.
+Per camera of a keyframe, with its affine exposure ``pred = a * colour + b``: colour
+``(1 - l_ssim) * L1 + l_ssim * (1 - SSIM)``, depth ``l_depth * mean |D - d|`` where the
+target depth ``d`` is known, and normal consistency ``l_normal * mean (1 - <n(D), n(d)>)``
+(normals of back-projected depth; the target depth's normals stand in for the paper's
+monocular normal prior); the loss is the sum over the keyframe's cameras. Definitions
+and kernels: :mod:`mcgs_warp.kernels.losses`. The Gaussian-space scale regularizer
+lives in :mod:`mcgs_warp.kernels.mapping`.
+
+Targets (images, depths, their SSIM statistics and normals) are uploaded once per
+keyframe and kept on the device in a small LRU cache; an entry is rebuilt when the
+host lists or arrays it was made from are replaced (identity, not contents: change a
+keyframe's targets by assigning new arrays, never in place).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from dataclasses import dataclass
+
 import numpy as np
+import warp as wp
 
-from ..eval.metrics import psnr, ssim  # noqa: F401  (re-exported for the mapper)
+from ..kernels import Camera
+from ..kernels.launch import run_row_bands
+from ..kernels.losses import (
+    blur_rows3_kernel,
+    camera_sums_kernel,
+    exposure_grad_kernel,
+    image_grad_kernel,
+    loss_summary_kernel,
+    loss_terms_kernel,
+    ssim_moments_rows_kernel,
+    ssim_target_kernel,
+    ssim_target_rows_kernel,
+    ssim_window,
+    target_normals_kernel,
+    vec8d,
+)
 
-def color_loss(rendered: np.ndarray, target: np.ndarray, lambda_ssim: float = 0.2):
-    """``(1 - l) * mean|x - y| + l * (1 - SSIM)`` and its gradient w.r.t. ``rendered``."""
-    diff = rendered - target
-    l1 = float(np.abs(diff).mean())
-    g = (1 - lambda_ssim) * np.sign(diff) / diff.size
-    value = (1 - lambda_ssim) * l1
-    if lambda_ssim > 0:
-        s, gs = ssim(rendered, target)
-        value += lambda_ssim * (1 - s)
-        g = g - lambda_ssim * gs
-    return value, g
-
-
-def depth_loss(rendered: np.ndarray, target: np.ndarray, alpha: np.ndarray | None = None):
-    """Mean ``|D - d|`` over pixels with a target depth, and its gradient w.r.t. ``D``."""
-    valid = target > 0
-    n = max(int(valid.sum()), 1)
-    diff = np.where(valid, rendered - target, 0.0)
-    return float(np.abs(diff).sum() / n), np.sign(diff) / n
-
-
-def _normals(X: np.ndarray):
-    """Unnormalized normals [H-1,W-1,3] ``a x b`` of a point image X [H,W,3] from forward
-    differences ``a = X[y,x+1] - X[y,x]``, ``b = X[y+1,x] - X[y,x]``."""
-    a = X[:-1, 1:] - X[:-1, :-1]
-    b = X[1:, :-1] - X[:-1, :-1]
-    return a, b, np.cross(a, b)
+# Pixels of a row per thread in the two passes that also reduce: a whole row on the CPU
+# (sums stay in registers), 16 on CUDA (enough threads, short per-camera sums).
+CUDA_SEGMENT = 16
 
 
-def normal_loss(depth: np.ndarray, target_depth: np.ndarray, rays: np.ndarray):
-    """Eq. 11 normal term ``mean(1 - <n, n_prior>)`` and its gradient w.r.t. ``depth``.
+@dataclass
+class KeyframeTargets:
+    """One keyframe's loss targets on the device, padded to [C,H,W] (zero outside a camera)."""
 
-    Normals come from back-projected depth (``rays`` [H,W,3]: unit-depth rays) by
-    forward differences, for the rendered depth and for the target depth (standing in
-    for the paper's monocular normal prior). Pixels whose three depths are not all
-    known in both maps do not count."""
-    H, W = depth.shape
-    D = np.asarray(depth, np.float64)
-    Dt = np.asarray(target_depth, np.float64)
-    ok = (D > 0) & (Dt > 0)
-    valid = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1]
-    _, _, nt = _normals(rays * Dt[..., None])
-    nt_len = np.linalg.norm(nt, axis=-1)
-    a, b, n = _normals(rays * D[..., None])
-    n_len = np.linalg.norm(n, axis=-1)
-    valid &= (nt_len > 1e-12) & (n_len > 1e-12)
-    count = max(int(valid.sum()), 1)
-    nt_hat = np.where(valid[..., None], nt / np.maximum(nt_len, 1e-12)[..., None], 0.0)
-    n_hat = np.where(valid[..., None], n / np.maximum(n_len, 1e-12)[..., None], 0.0)
-    value = float(np.sum(valid * (1.0 - np.sum(n_hat * nt_hat, -1))) / count)
-    g_hat = -nt_hat / count  # dL / d n_hat
-    g_n = (g_hat - n_hat * np.sum(n_hat * g_hat, -1, keepdims=True)) / np.maximum(n_len, 1e-12)[..., None]
-    g_n = np.where(valid[..., None], g_n, 0.0)
-    g_a = np.cross(b, g_n)  # d(a x b)/da^T g = b x g
-    g_b = np.cross(g_n, a)  # d(a x b)/db^T g = g x a
-    gX = np.zeros((H, W, 3))
-    gX[:-1, 1:] += g_a
-    gX[1:, :-1] += g_b
-    gX[:-1, :-1] -= g_a + g_b
-    return value, np.sum(gX * rays, -1)
+    image: wp.array  # [C,H,W] vec3, RGB in [0, 1]
+    depth: wp.array  # [C,H,W] float, m, 0 = none
+    mu: wp.array  # [C,H,W] vec3, SSIM local mean of the image
+    var: wp.array  # [C,H,W] vec3, SSIM local variance of the image
+    normals: wp.array  # [C,H,W] vec3, unit normal of the target depth per quad, 0 = none
+    inv_depth_count: wp.array  # [C] float, 1 / #pixels with a target depth (0: none)
+    sources: tuple  # (images, depths) host objects it was made from
+
+
+@dataclass
+class LossResult:
+    """Device outputs of :meth:`MappingLoss.__call__`; overwritten by its next call."""
+
+    grad_color: wp.array  # [C,H,W] vec3, dL/d rendered colour
+    grad_depth: wp.array  # [C,H,W] float, dL/d rendered depth (1/m)
+    grad_exposure: wp.array  # [C,2] float, dL/d (log a, b)
+    losses: wp.array  # [C] vec4d: colour, depth and normal terms (weighted), mean squared error
+
+    def values(self) -> tuple[float, np.ndarray]:
+        """Host copy: (total loss, PSNR [C] in dB of the clipped exposed render)."""
+        v = self.losses.numpy()
+        with np.errstate(divide="ignore"):
+            psnr = np.where(v[:, 3] > 0, -10.0 * np.log10(v[:, 3]), np.inf)
+        return float(v[:, :3].sum()), psnr
+
+
+def pad_images(images, C: int, H: int, W: int, channels: int = 0) -> np.ndarray:
+    """Stack per-camera host images ([h_c,w_c(,3)], ``None`` = zeros) into [C,H,W(,3)] float32."""
+    out = np.zeros((C, H, W, channels) if channels else (C, H, W), np.float32)
+    for c, img in enumerate(images):
+        if img is not None:
+            img = np.asarray(img)
+            out[c, : img.shape[0], : img.shape[1]] = img
+    return out
+
+
+class MappingLoss:
+    """The device loss of a batch of C views (one keyframe's rig views).
+
+    ``cameras``: the C full-resolution :class:`Camera` structs (their sizes bound each
+    view; images are padded to the largest). ``cache_size``: keyframes whose targets stay
+    on the device. Work buffers are allocated once and reused by every call."""
+
+    def __init__(self, cameras: list, device=None, cache_size: int = 32):
+        from ..kernels import losses as loss_kernels
+        from ..kernels.ba import grid_rays_kernel
+
+        self.device = wp.get_device(device)
+        wp.load_module(loss_kernels, device=self.device)  # once, here: not from the row-band threads
+        self.C = len(cameras)
+        self.H = max(c.height for c in cameras)
+        self.W = max(c.width for c in cameras)
+        self.cameras = wp.array(cameras, dtype=Camera, device=self.device)
+        self.window = wp.array(ssim_window(), dtype=float, device=self.device)
+        self.rays = wp.zeros(self.shape, dtype=wp.vec3, device=self.device)  # unit-depth ray per pixel
+        wp.launch(grid_rays_kernel, dim=self.shape, inputs=[self.cameras], outputs=[self.rays], device=self.device)
+        self.cache_size = max(1, int(cache_size))
+        self._cache: OrderedDict[int, KeyframeTargets] = OrderedDict()
+        vec3_maps = [wp.zeros(self.shape, dtype=wp.vec3, device=self.device) for _ in range(8)]
+        self._h = vec3_maps[0:3]  # horizontal passes
+        self._d = vec3_maps[3:6]  # moment adjoints
+        self._quad = vec3_maps[6:8]  # normal adjoints per quad
+        self.segment = CUDA_SEGMENT if self.device.is_cuda else self.W
+        self._segments = wp.zeros((self.C, self.H, -(-self.W // self.segment)), dtype=vec8d, device=self.device)
+        self._sums = wp.zeros(self.C, dtype=vec8d, device=self.device)
+        self._normal_weight = wp.zeros(self.C, dtype=float, device=self.device)
+        self.result = LossResult(
+            wp.zeros(self.shape, dtype=wp.vec3, device=self.device),
+            wp.zeros(self.shape, dtype=float, device=self.device),
+            wp.zeros((self.C, 2), dtype=float, device=self.device),
+            wp.zeros(self.C, dtype=wp.vec4d, device=self.device),
+        )
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.C, self.H, self.W)
+
+    def _rows_launch(self, kernel, inputs, outputs, width=None) -> None:
+        """Launch a kernel of dim ``(C, rows, width)`` (default: the image width) over bands of rows."""
+        dims = (self.C, self.W if width is None else width)
+
+        def band(worker, row0, rows):
+            wp.launch(kernel, dim=(dims[0], rows, dims[1]), inputs=[*inputs, row0], outputs=outputs, device=self.device)
+
+        run_row_bands(self.device, self.H, band)
+
+    # ----------------------------------------------------------------------------------
+    def make_targets(self, images, depths) -> KeyframeTargets:
+        """Upload one keyframe's targets: ``images[c]`` [h_c,w_c,3] in [0,1], ``depths[c]``
+        [h_c,w_c] m (0 or ``None`` = none) per camera; precompute the target-only SSIM
+        statistics and normals."""
+        dev, C, H, W = self.device, self.C, self.H, self.W
+        depths = list(depths) if depths is not None else [None] * C
+        img = wp.array(pad_images(images, C, H, W, 3), dtype=wp.vec3, device=dev)
+        dep_np = pad_images(depths, C, H, W)
+        dep = wp.array(dep_np, dtype=float, device=dev)
+        counts = (dep_np > 0).sum(axis=(1, 2))
+        inv_count = np.where(counts > 0, 1.0 / np.maximum(counts, 1), 0.0).astype(np.float32)
+        t = KeyframeTargets(
+            img,
+            dep,
+            wp.zeros(self.shape, dtype=wp.vec3, device=dev),
+            wp.zeros(self.shape, dtype=wp.vec3, device=dev),
+            wp.zeros(self.shape, dtype=wp.vec3, device=dev),
+            wp.array(inv_count, dtype=float, device=dev),
+            (images, depths),
+        )
+        h_t, h_tt = self._h[0], self._h[1]
+        self._rows_launch(ssim_target_rows_kernel, [img, self.cameras, self.window], [h_t, h_tt])
+        self._rows_launch(ssim_target_kernel, [self.cameras, self.window], [h_t, h_tt, t.mu, t.var])
+        self._rows_launch(target_normals_kernel, [dep, self.rays, self.cameras], [t.normals])
+        return t
+
+    def targets(self, key, images, depths) -> KeyframeTargets:
+        """The cached targets of keyframe ``key``, made (or remade, when ``images`` or
+        ``depths`` are other objects than last time) by :meth:`make_targets`."""
+        t = self._cache.get(key)
+        if t is None or not (_same(t.sources[0], images) and _same(t.sources[1], depths)):
+            t = self.make_targets(images, depths)
+            t.sources = (images, depths)
+        self._cache[key] = t
+        self._cache.move_to_end(key)
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return t
+
+    def forget(self, key=None) -> None:
+        """Drop the cached targets of ``key`` (all with ``None``)."""
+        if key is None:
+            self._cache.clear()
+        else:
+            self._cache.pop(key, None)
+
+    # ----------------------------------------------------------------------------------
+    def __call__(self, color, depth, targets: KeyframeTargets, exposure, lambda_ssim: float, lambda_depth: float, lambda_normal: float) -> LossResult:
+        """Loss and gradients of rendered ``color`` [C,H,W] vec3 and ``depth`` [C,H,W]
+        (m) against ``targets`` with ``exposure`` [C,2] float (log a, b) per camera
+        (device arrays). Everything stays on the device; see :meth:`LossResult.values`."""
+        dev, cams, win = self.device, self.cameras, self.window
+        r = self.result
+        h, d, qa, qb = self._h, self._d, self._quad[0], self._quad[1]
+        ls, ld = float(lambda_ssim), float(lambda_depth)
+        if ls > 0:
+            self._rows_launch(ssim_moments_rows_kernel, [color, targets.image, exposure, cams, win], h)
+        seg, n_seg = self.segment, self._segments.shape[2]
+        self._rows_launch(
+            loss_terms_kernel,
+            [color, depth, targets.image, targets.depth, targets.mu, targets.var, targets.normals, self.rays, exposure, cams, win, ls, seg],
+            [*h, *d, qa, qb, self._segments],
+            n_seg,
+        )
+        wp.launch(camera_sums_kernel, dim=self.C, inputs=[self._segments, cams], outputs=[self._sums], device=dev)
+        wp.launch(loss_summary_kernel, dim=self.C, inputs=[self._sums, cams, targets.inv_depth_count, ls, ld, float(lambda_normal)], outputs=[r.losses, self._normal_weight], device=dev)
+        if ls > 0:
+            self._rows_launch(blur_rows3_kernel, [cams, win], [*d, *h])
+        self._rows_launch(
+            image_grad_kernel,
+            [color, depth, targets.image, targets.depth, self.rays, exposure, cams, win, ls, ld, targets.inv_depth_count, self._normal_weight, seg],
+            [*h, qa, qb, r.grad_color, r.grad_depth, self._segments],
+            n_seg,
+        )
+        wp.launch(camera_sums_kernel, dim=self.C, inputs=[self._segments, cams], outputs=[self._sums], device=dev)
+        wp.launch(exposure_grad_kernel, dim=self.C, inputs=[self._sums], outputs=[r.grad_exposure], device=dev)
+        return r
+
+
+def _same(a, b) -> bool:
+    """Whether two lists of per-camera arrays are the same objects (not merely equal)."""
+    if a is b:
+        return True
+    if a is None or b is None or len(a) != len(b):
+        return False
+    return all(x is y for x, y in zip(a, b))

@@ -1,4 +1,12 @@
-"""Adam over Warp parameter arrays (one kernel launch per parameter group)."""
+"""The one Adam of the mapping stage: Gaussians, per-image exposures and keyframe pose
+corrections are all stepped by :func:`mcgs_warp.kernels.mapping.adam_kernel` on the
+device (one launch per parameter group).
+
+A group is a named flat float32 array with its own moments and step count (bias
+correction). The Gaussian groups are named after their parameter; exposures and pose
+corrections get a group per keyframe (``exposure{k}``, ``pose{k}``), so a keyframe's
+bias correction counts its own steps, whichever keyframes were visited in between.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +20,8 @@ def flat(a: wp.array) -> wp.array:
 
 
 class Adam:
-    """Adam with per-group learning rates; ``params`` maps a name to a Warp array."""
+    """Adam with per-group learning rates ``lrs`` (name -> lr; groups stepped with
+    :meth:`step_group` pass theirs); ``state``: name -> (m, v, step count)."""
 
     def __init__(self, lrs: dict, betas=(0.9, 0.999), eps: float = 1e-15):
         self.lrs = dict(lrs)
@@ -36,20 +45,27 @@ class Adam:
         self.state[name] = (wp.array(mn.ravel(), dtype=float, device=dev), wp.array(vn.ravel(), dtype=float, device=dev), t)
 
     def step(self, params: dict, grads: dict) -> None:
+        """Step every group of ``params`` (name -> Warp array) that has a positive
+        learning rate in ``lrs`` and a gradient in ``grads`` (same shapes)."""
+        for name, p in params.items():
+            lr = self.lrs.get(name, 0.0)
+            if lr > 0 and name in grads:
+                self.step_group(name, p, grads[name], lr)
+
+    def step_group(self, name: str, param: wp.array, grad: wp.array, lr: float) -> None:
+        """One in-place Adam step of group ``name``: ``param`` and ``grad`` are Warp arrays
+        of the same size (any vector dtype of float32; contiguous), ``lr`` in the
+        parameter's units per step. Moments are (re)made when the size changes."""
         from ..kernels.mapping import adam_kernel
 
         b1, b2 = self.betas
-        for name, p in params.items():
-            lr = self.lrs.get(name, 0.0)
-            if lr <= 0 or name not in grads:
-                continue
-            pf, gf = flat(p), flat(grads[name])
-            if name not in self.state or self.state[name][0].shape[0] != pf.shape[0]:
-                self.state[name] = (wp.zeros_like(pf), wp.zeros_like(pf), 0)
-            m, v, t = self.state[name]
-            t += 1
-            self.state[name] = (m, v, t)
-            wp.launch(adam_kernel, dim=pf.shape[0], inputs=[pf, gf, m, v, lr, b1, b2, self.eps, 1 - b1**t, 1 - b2**t], device=p.device)
+        pf, gf = flat(param), flat(grad)
+        if name not in self.state or self.state[name][0].shape[0] != pf.shape[0]:
+            self.state[name] = (wp.zeros_like(pf), wp.zeros_like(pf), 0)
+        m, v, t = self.state[name]
+        t += 1
+        self.state[name] = (m, v, t)
+        wp.launch(adam_kernel, dim=pf.shape[0], inputs=[pf, gf, m, v, lr, b1, b2, self.eps, 1 - b1**t, 1 - b2**t], device=pf.device)
 
     def state_arrays(self) -> dict:
         """Moments and step counts as NumPy arrays (for checkpoints)."""
@@ -59,6 +75,7 @@ class Adam:
         return out
 
     def load_state_arrays(self, arrays: dict, device) -> None:
+        """Restore what :meth:`state_arrays` gave (moments on ``device``)."""
         self.state = {}
         for key in arrays:
             if key.endswith(".m"):

@@ -47,11 +47,12 @@ def keyframe_views(slam):
     yields (k, c, rendered colour, rendered depth, input image, frame index)."""
     m, buf = slam.mapper, slam.buf
     poses = buf.get_poses()
+    exposure = m.exposure.numpy()  # [capacity, C, 2] (log a, b)
     for k in range(len(buf)):
         out = render(m.map.gaussians, Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
         col, dep = out.color.numpy(), out.depth.numpy()
         for c, spec in enumerate(buf.rig.cameras):
-            a, b = np.exp(m.exposure[k, c, 0]), m.exposure[k, c, 1]
+            a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
             yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
 
 

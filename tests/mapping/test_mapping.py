@@ -24,6 +24,34 @@ def test_fit_reaches_target_psnr(fitted, mapping_seq):
     assert fitted.history[-1].psnr > first + 2.0  # the optimizer does the work, not just the init
 
 
+def test_step_matches_the_host_loss(fitted, mapping_seq):
+    """A device-resident mapping step gives the loss, PSNR and exposure gradient of the
+    former host loss on the same render (keyframe views made on the device as on the host)."""
+    from loss_reference import keyframe_loss
+
+    cfg = MappingConfig(lambda_scale=0.0, densify_every=0, lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0, lr_exposure=1e-3)
+    m = make_mapper(mapping_seq, cfg, fitted.map.to_numpy())
+    exposure = np.array([[0.05, 0.01], [-0.03, 0.02], [0.0, -0.01]], np.float32)
+    e = m.exposure.numpy()
+    e[1] = exposure
+    m.exposure.assign(e)
+    views = m.views(1)
+    T_c_w = np.linalg.inv(m.buf.rig.camera_poses(m.buf.get_poses()[1]))
+    np.testing.assert_allclose(views.viewmats.numpy(), T_c_w, atol=1e-5)
+    out = render(m.map.gaussians, views)
+    sizes = [(s.height, s.width) for s in m.buf.rig.cameras]
+    rays = [m.full_rays(c) for c in range(len(sizes))]
+    total, _, _, grad_exposure, psnr = keyframe_loss(
+        out.color.numpy(), out.depth.numpy(), sizes, m.buf.images[1], m.depths[1], rays, exposure.astype(np.float64), cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal
+    )
+    m.optimize_exposure = True
+    r = m.step(1)
+    assert np.isclose(r.loss, total, rtol=1e-5) and np.isclose(r.psnr, psnr.mean(), rtol=1e-5)
+    # one Adam step moves each exposure parameter by lr against its gradient's sign
+    np.testing.assert_allclose(m.exposure.numpy()[1], exposure - 1e-3 * np.sign(grad_exposure), atol=1e-6)
+    assert not m.exposure.numpy()[[0, 2, 3]].any()
+
+
 def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
     """Eq. 12-13 on the parameters and in the render: the Gaussians anchored to keyframe 2
     are visible from its cameras, follow a rigid correction so that the moved cameras see
@@ -123,9 +151,9 @@ def test_densify_and_prune_counts(fitted, mapping_seq):
     d["log_scales"][15:20] = np.log(0.2)  # large and hot: split
     d["log_scales"][20:30] = np.log(0.01)  # small and hot: clone
     m.map.set_numpy(d)
-    m._grad_accum[:] = 0
-    m._grad_count[:] = 1
-    m._grad_accum[15:30] = 1.0
+    accum, count = np.zeros(n), np.ones(n)
+    accum[15:30] = 1.0
+    m.map.set_statistics(accum, count)
     rep = m.densify_and_prune()
     assert (rep.pruned, rep.split, rep.cloned) == (15, 5, 10)
     assert len(m.map) == n - 15 - 5 + 10 + 2 * 5
