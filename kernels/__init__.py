@@ -13,6 +13,10 @@ Modules:
     tiles       tile binning with radix-sorted (tile, depth) keys
     blend       front-to-back alpha blending and its adjoint
     splat       Python stages: project, bin_tiles, blend, their backwards, render, render_backward
+    ba          MCBA residuals, Jacobians and the sparse Schur reduction (paper eq. 6-10)
+    stereo      sweep stereo for any camera model, left-right check, dense reprojection
+    losses      mapping losses (exposure, L1 + SSIM, depth, normal) and their gradients
+    mapping     Adam, anchored moves (eq. 12-13), scale regularizer
     reference   NumPy float64 brute-force twin used by the tests
 """
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .camera import FAR, NEAR, Camera, camera_in_domain, camera_project
 from .se3 import mat66, se3_retract, vec6
 
 wp.set_module_options({"enable_backward": False})
@@ -56,22 +57,60 @@ def move_anchored_kernel(
     log_scales[i] = log_scales[i] + wp.vec3(log_scale_change)
 
 
+@wp.func
+def sample_grid(grid: wp.array(dtype=float, ndim=3), c: int, u: float, v: float, width: int, height: int):
+    """Bilinear sample of ``grid[c]`` at continuous pixel ``(u, v)`` inside ``[0, w-1] x [0, h-1]``."""
+    x0 = wp.clamp(int(wp.floor(u)), 0, wp.max(width - 2, 0))
+    y0 = wp.clamp(int(wp.floor(v)), 0, wp.max(height - 2, 0))
+    x1 = wp.min(x0 + 1, width - 1)
+    y1 = wp.min(y0 + 1, height - 1)
+    fx = u - float(x0)
+    fy = v - float(y0)
+    a = grid[c, y0, x0] * (1.0 - fx) + grid[c, y0, x1] * fx
+    b = grid[c, y1, x0] * (1.0 - fx) + grid[c, y1, x1] * fx
+    return a * (1.0 - fy) + b * fy
+
+
 @wp.kernel
-def scale_anchored_kernel(
+def follow_depth_kernel(
     means: wp.array(dtype=wp.vec3),
     log_scales: wp.array(dtype=wp.vec3),
     anchors: wp.array(dtype=wp.int32),
     keyframe: int,
-    centre: wp.vec3,  # world position the scale change is about (the keyframe's rig origin)
-    scale: float,
+    T_c_w: wp.array(dtype=wp.transform),  # [C] world -> camera c of the keyframe
+    cameras: wp.array(dtype=Camera),  # [C] at the ratio grid's resolution
+    ratio: wp.array(dtype=float, ndim=3),  # [C,h,w] new / old depth of the keyframe
 ):
-    """Eq. 13: Gaussians anchored to ``keyframe`` follow a depth-scale change ``s`` of
-    that keyframe: positions move along their rays from ``centre``, sizes scale by ``s``."""
+    """Eq. 13 per pixel: a Gaussian anchored to ``keyframe`` moves along the ray of the
+    keyframe camera that sees it nearest its image centre, by that camera's depth ratio at
+    its pixel (bilinear), and its size scales alike; a Gaussian no camera sees stays."""
     i = wp.tid()
     if anchors[i] != keyframe:
         return
-    means[i] = centre + scale * (means[i] - centre)
-    log_scales[i] = log_scales[i] + wp.vec3(wp.log(scale))
+    X = means[i]
+    best = float(1.0e30)
+    s = float(1.0)
+    centre = wp.vec3(0.0)
+    for c in range(cameras.shape[0]):
+        cam = cameras[c]
+        Xc = wp.transform_point(T_c_w[c], X)
+        if not camera_in_domain(cam, Xc, NEAR, FAR):
+            continue
+        uv = camera_project(cam, Xc)
+        w = float(cam.width)
+        h = float(cam.height)
+        if uv[0] < 0.0 or uv[1] < 0.0 or uv[0] > w - 1.0 or uv[1] > h - 1.0:
+            continue
+        du = (uv[0] - 0.5 * (w - 1.0)) / w
+        dv = (uv[1] - 0.5 * (h - 1.0)) / h
+        r2 = du * du + dv * dv
+        if r2 < best:
+            best = r2
+            s = sample_grid(ratio, c, uv[0], uv[1], cam.width, cam.height)
+            centre = wp.transform_point(wp.transform_inverse(T_c_w[c]), wp.vec3(0.0))
+    if best < 1.0e30 and s > 0.0:
+        means[i] = centre + s * (X - centre)
+        log_scales[i] = log_scales[i] + wp.vec3(wp.log(s))
 
 
 @wp.kernel

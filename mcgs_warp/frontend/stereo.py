@@ -5,9 +5,13 @@ Per keyframe and camera ``a`` the reference view is swept (:mod:`mcgs_warp.kerne
 against every camera ``b`` of the rig whose field of view overlaps ``a``'s at the same
 timestamp (``T_b_a = inv(T_b_c[b]) T_b_c[a]``, known from calibration: the depth is
 metric), at ``1/scale`` resolution, and the two directions are checked against each other
-(left-right). The sweep kernels take any number of sources at any poses, so temporal
-sources (other keyframes at their MCBA poses, for rigs without overlap) can join; that is
-not wired in yet.
+(left-right). Once poses are solved, :meth:`RigStereo.temporal_depth` also sweeps a view
+against the same camera at other keyframes, and per pixel the estimate with the most
+parallax (:meth:`RigStereo.parallax_rate`) wins: the rig pair near the cameras, the metres of
+travel for the far scene. The SLAM loop does not use it: as MCBA's prior it moved the
+RGB-only scale by 1.7 % (a temporal depth carries the trajectory's current scale, so it only
+holds that scale in place), and as a mapping target it changed neither depth L1 nor ATE on the
+built-in sequence (3 cameras, or 1).
 
 Sampling: uniform in inverse depth between ``1/far`` and ``1/near``, ``plane_px`` pixels
 of epipolar motion per step for the pair's baseline (``planes`` caps the count); with the
@@ -63,6 +67,8 @@ class StereoConfig:
     max_cost: float = 0.5  # 1 - ZNCC of the winner must be below this (ZNCC > 0.5)
     max_ratio: float = 0.9  # uniqueness: best / second-best cost
     lr_px: float = 1.0  # left-right consistency, px at sweep resolution
+    temporal_near: float = 1.0  # m: nearest hypothesis of temporal sweeps (closer things are the rig pairs' job)
+    temporal_baseline: float = 0.5  # m: a keyframe gets temporal sources once one is this far from it
     min_overlap: float = 0.05  # camera pairs sharing less of their views are not swept
 
 
@@ -84,6 +90,26 @@ class RigStereo:
         self.pairs = [(a, b) for a in range(C) for b in range(C) if a != b and overlap[a, b] >= cfg.min_overlap and overlap[b, a] >= cfg.min_overlap]
         self._cache: dict = {}
         self._depths: OrderedDict = OrderedDict()  # key -> (depths, confidences) of recent frames
+        self._rates: dict = {}  # (a, b) -> parallax rate [h,w] of the rig pair (px per 1/m)
+
+    def parallax_rate(self, a: int, b: int, T_b_a: np.ndarray) -> np.ndarray:
+        """Epipolar motion in view ``b`` per unit of inverse depth of each pixel of view ``a``
+        (px per 1/m at sweep resolution, [h,w]; 0 where the ray leaves view b): how well
+        that pair measures the pixel's depth, for any camera model."""
+        from ..kernels.stereo import reproject
+
+        h, w = self.specs[a].height, self.specs[a].width
+        r1, r2 = 1.0 / 50.0, 1.0 / 10.0
+        uv1 = reproject(self.rays[a], np.full((h, w), r1, np.float32), T_b_a, self.cams[b], device=self.device)
+        uv2 = reproject(self.rays[a], np.full((h, w), r2, np.float32), T_b_a, self.cams[b], device=self.device)
+        rate = np.linalg.norm(uv2 - uv1, axis=-1) / (r2 - r1)
+        return np.where(np.isfinite(rate), rate, 0.0).astype(np.float32)
+
+    def _pair_rate(self, a: int, b: int) -> np.ndarray:
+        if (a, b) not in self._rates:
+            T_b_a = np.linalg.inv(self.rig.cameras[b].T_b_c) @ self.rig.cameras[a].T_b_c
+            self._rates[(a, b)] = self.parallax_rate(a, b, T_b_a)
+        return self._rates[(a, b)]
 
     def hypotheses(self, baseline: float, focal: float) -> np.ndarray:
         from ..kernels.stereo import inverse_depth_hypotheses
@@ -119,23 +145,62 @@ class RigStereo:
         mapper asks again for every keyframe of the window after each solve)."""
         if key in self._depths:
             return self._depths[key]
-        sweeps = self.pair_sweeps(key, images)
         depths, confs = [], []
         for c, spec in enumerate(self.rig.cameras):
-            h, w = self.specs[c].height, self.specs[c].width
-            best_d = np.zeros((h, w), np.float32)
-            best_c = np.zeros((h, w), np.float32)
-            for (a, _b), res in sweeps.items():
-                if a != c:
-                    continue
-                d, conf = res.depth(), res.confidence.numpy()
-                take = conf > best_c
-                best_d[take], best_c[take] = d[take], conf[take]
-            depths.append(upsample_nearest(best_d, spec, self.cfg.scale))
-            confs.append(upsample_nearest(best_c, spec, self.cfg.scale))
-        self._depths[key] = (depths, confs)
+            d, conf, _rate = self._rig_view(key, images, c)
+            depths.append(upsample_nearest(d, spec, self.cfg.scale))
+            confs.append(upsample_nearest(conf, spec, self.cfg.scale))
+        self._remember(key, (depths, confs))
+        return depths, confs
+
+    def _remember(self, key, value) -> None:
+        self._depths[key] = value
         while len(self._depths) > KEEP:
             self._depths.popitem(last=False)
+
+    def _rig_view(self, key, images, c: int):
+        """Sweep-resolution depth, confidence and parallax rate [h,w] of camera ``c`` from
+        its most confident rig pair per pixel."""
+        sweeps = self.pair_sweeps(key, images)
+        h, w = self.specs[c].height, self.specs[c].width
+        best_d, best_c, best_r = (np.zeros((h, w), np.float32) for _ in range(3))
+        for (a, b), res in sweeps.items():
+            if a != c:
+                continue
+            d, conf = res.depth(), res.confidence.numpy()
+            take = conf > best_c
+            best_d[take], best_c[take], best_r[take] = d[take], conf[take], self._pair_rate(a, b)[take]
+        return best_d, best_c, best_r
+
+    def temporal_depth(self, key, images, sources) -> tuple[list, list]:
+        """Per camera ``c``: depth and confidence [h,w] at sweep resolution (upsample with
+        :func:`upsample_nearest`) from the rig pairs and from a sweep of the view against
+        ``sources[c]``, a list of ``(image, T_src_ref)`` (the same camera at other keyframes;
+        ``T_src_ref`` 4x4 from the solved poses), taking per pixel the confident estimate with
+        the most parallax (:meth:`parallax_rate`)."""
+        from ..kernels.stereo import inverse_depth_hypotheses, sweep
+
+        cfg = self.cfg
+        depths, confs = [], []
+        for c in range(len(self.rig)):
+            d, conf, rate = self._rig_view(key, images, c)
+            src = sources[c] if c < len(sources) else []
+            if src:
+                Ts = np.stack([T for _im, T in src])
+                base = max(float(np.linalg.norm(T[:3, 3])) for T in Ts)
+                step = cfg.plane_px / max(self.specs[c].intrinsics[0] * base, 1e-6)
+                n = int(np.clip(np.ceil((1.0 / cfg.temporal_near - 1.0 / cfg.far) / step), 8, cfg.planes))
+                rho = inverse_depth_hypotheses(cfg.temporal_near, cfg.far, n)
+                res = sweep(grey(images[c], cfg.scale), self.rays[c], [grey(im, cfg.scale) for im, _T in src], [self.cams[c]] * len(src), Ts, rho, cfg.radius, cfg.min_std, 1, cfg.max_cost, cfg.max_ratio, device=self.device)
+                td, tc = res.depth(), res.confidence.numpy()
+                # best-of-sources matching does not say which source won: credit the weakest one that sees the pixel
+                rates = np.stack([self.parallax_rate(c, c, T) for T in Ts])
+                trate = np.where(rates > 0, rates, np.inf).min(0)
+                trate = np.where(np.isfinite(trate), trate, 0.0)
+                take = (tc > 0) & (td > 0) & ((conf <= 0) | (trate > rate))
+                d, conf = np.where(take, td, d).astype(np.float32), np.where(take, tc, conf).astype(np.float32)
+            depths.append(d)
+            confs.append(conf)
         return depths, confs
 
 

@@ -21,7 +21,10 @@ def write_ply(path, params: dict) -> None:
     """Write map parameters (``means``, ``quats`` xyzw, ``log_scales``, ``opacity_logits``, ``colors``)."""
     n = len(params["means"])
     q = np.asarray(params["quats"], np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    # normalize, but leave quaternions that are unit to float32 precision as they are, so that
+    # reading a file and writing it again gives the same bytes
+    q = np.where(np.abs(norm - 1.0) < 1e-6, q, q / norm)
     data = np.zeros((n, len(FIELDS)), np.float32)
     data[:, 0:3] = params["means"]
     data[:, 6:9] = (np.asarray(params["colors"]) - 0.5) / SH_C0

@@ -215,17 +215,23 @@ class GaussianMap:
             device=self.device,
         )
 
-    def scale_anchored(self, keyframe: int, T_w_b: np.ndarray, scale: float) -> None:
-        """Eq. 13: scale the Gaussians anchored to ``keyframe`` by ``scale`` about its rig
-        origin (positions and sizes), after its depth was rescaled by that factor."""
-        from ..kernels.mapping import scale_anchored_kernel
+    def follow_depth(self, keyframe: int, T_w_b: np.ndarray, rig, cameras, ratio: np.ndarray) -> None:
+        """Eq. 13 per pixel: the Gaussians anchored to ``keyframe`` (rig pose ``T_w_b``) follow
+        a change of its depth, ``ratio`` [C,h,w] = new / old depth on the grid of ``cameras``
+        (a Warp array of the rig's cameras at that grid's resolution): each moves along the
+        ray of the camera that sees it nearest its image centre, its size scales alike."""
+        from ..geometry import matrix_to_transform7
+        from ..kernels.mapping import follow_depth_kernel
 
         if len(self) == 0:
             return
         if self._anchors_dev is None:
             self._anchors_dev = wp.array(self.anchors, dtype=wp.int32, device=self.device)
+        T_c_w = np.stack([np.linalg.inv(np.asarray(T_w_b) @ spec.T_b_c) for spec in rig.cameras])
+        T = wp.array(matrix_to_transform7(T_c_w).astype(np.float32), dtype=wp.transform, device=self.device)
+        r = wp.array(np.ascontiguousarray(ratio, dtype=np.float32), dtype=float, device=self.device)
         g = self.gaussians
-        wp.launch(scale_anchored_kernel, dim=len(self), inputs=[g.means, g.log_scales, self._anchors_dev, int(keyframe), wp.vec3(*np.asarray(T_w_b, np.float32)[:3, 3]), float(scale)], device=self.device)
+        wp.launch(follow_depth_kernel, dim=len(self), inputs=[g.means, g.log_scales, self._anchors_dev, int(keyframe), T, cameras, r], device=self.device)
 
     def follow_keyframes(self, old_T_w_b: np.ndarray, new_T_w_b: np.ndarray, scale: float = 1.0) -> None:
         """Move every keyframe's Gaussians from its old to its new rig pose."""

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from ..ba.graph import build_edges, camera_overlap, sliding_window
+from ..ba.graph import FactorGraph, GraphConfig, camera_overlap, sliding_window
 from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
@@ -36,6 +36,7 @@ from ..mapping.refine import joint_refinement
 from .config import RunConfig
 
 
+GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
@@ -90,7 +91,8 @@ class SLAM:
         self.stereo_matches = StereoMatches(self.stereo)
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
-        self._flows: dict = {}
+        self.graph = FactorGraph(self.buf, self.overlap, GraphConfig(max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
+        self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
 
@@ -101,41 +103,37 @@ class SLAM:
         return self.cfg.tracking.jdsa and self.prior.metric and not self.prior.exact
 
     # ----------------------------------------------------------------------------------
-    def correspondences(self, edges: np.ndarray, refresh=(), guided_new: bool = False):
-        """Targets and confidences per edge, cached per edge. Cross-view edges come from
-        the rig's sweep stereo, the others from DIS; edges touching a keyframe in
-        ``refresh`` are re-estimated from the current reprojection (:class:`GuidedDIS`);
-        ``guided_new`` computes new non-cross-view edges that way from the start (global BA's
-        long edges: their keyframes are already solved, their motion too large for raw DIS).
-        With ``--correspondences ground-truth`` every edge is exact (oracle)."""
-        keys = [tuple(e) for e in edges[:, :4].tolist()]
+    def measure(self, refresh=(), guided_new: bool = False) -> None:
+        """Correspondences for the graph's active edges that have none: cross-view edges from
+        the rig's sweep stereo, the others from DIS; edges touching a keyframe in ``refresh``
+        are re-estimated from the current reprojection (:class:`GuidedDIS`); ``guided_new``
+        computes new non-cross-view edges that way from the start (global BA's long edges:
+        their keyframes are already solved, their motion too large for raw DIS). With
+        ``--correspondences ground-truth`` every edge is exact (oracle)."""
+        g = self.graph
         if self.oracle is None and refresh:
-            redo = [k for k in keys if k[0] != k[2] and (k[0] in refresh or k[2] in refresh)]
-            self._compute(redo, self.guided)
-        missing = [k for k in keys if k not in self._flows]
-        if missing:
-            if self.oracle is not None:
-                self._compute(missing, self.oracle)
-            else:
-                cross = [k for k in missing if k[0] == k[2] and (k[1], k[3]) in self.stereo.pairs]
-                self._compute(cross, self.stereo_matches)
-                self._compute([k for k in missing if k not in set(cross)], self.guided if guided_new else self.flow)
-        return np.stack([self._flows[k][0] for k in keys]), np.stack([self._flows[k][1] for k in keys])
+            g.refresh(self.guided, refresh)
+        missing = g.missing()
+        if not len(missing):
+            return
+        if self.oracle is not None:
+            g.compute(self.oracle, missing)
+            return
+        cross = np.array([i == j and (ci, cj) in self.stereo.pairs for i, ci, j, cj, _ in missing.tolist()], bool)
+        if cross.any():
+            g.compute(self.stereo_matches, missing[cross])
+        if (~cross).any():
+            g.compute(self.guided if guided_new else self.flow, missing[~cross])
 
-    def _compute(self, keys, provider) -> None:
-        if keys:
-            t, w = provider.correspondences(self.buf, np.array(keys, dtype=np.int32))
-            for e, tt, ww in zip(keys, t, w):
-                self._flows[e] = (tt, ww)
-
-    def _solve(self, edges, keyframes, fresh=(), guided_new: bool = False):
-        """MCBA (+ JDSA) over ``keyframes`` in ``flow_rounds`` outer rounds; between rounds
-        the correspondences of edges touching ``fresh`` keyframes follow the new geometry.
-        Anchored Gaussians follow every pose and scale change, and the mapping depth
-        targets are refreshed."""
+    def _solve(self, keyframes, fresh=(), guided_new: bool = False):
+        """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``
+        outer rounds; between rounds the correspondences of edges touching ``fresh``
+        keyframes follow the new geometry. Anchored Gaussians follow every pose and depth
+        change, and the mapping depth targets are refreshed."""
         rounds = max(1, self.cfg.tracking.flow_rounds)
         for r in range(rounds):
-            targets, weights = self.correspondences(edges, refresh=fresh if r > 0 else (), guided_new=guided_new)
+            self.measure(refresh=fresh if r > 0 else (), guided_new=guided_new)
+            edges, targets, weights = self.graph.arrays(keyframes)
             before = self.buf.get_poses()
             if self.jdsa_active:
                 mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1)
@@ -145,22 +143,19 @@ class SLAM:
         self._follow_depths(keyframes)
 
     def _follow_depths(self, keyframes) -> None:
-        """Eq. 13 and fresh mapping targets for estimated depth: a mapped keyframe whose depth
-        MCBA/JDSA rescaled (median ratio over its views) takes its Gaussians along, scaled
-        about its rig origin (an approximation: its cameras sit within 0.25 m of it, so a 1 %
-        change moves a Gaussian at most 2.5 mm off its ray), and its depth targets become the
-        new estimate. Exact sensor depth is its own target: nothing follows."""
+        """Eq. 13 per pixel, and fresh mapping targets, for estimated depth: the Gaussians of a
+        mapped keyframe follow MCBA/JDSA's change of its depth along the rays of the camera
+        they were seen from (ratio of new to old grid depth at their pixel, 3x3 median), so a
+        keyframe whose far depth improves takes its Gaussians along; its depth targets become
+        the new estimate. Exact sensor depth is its own target: nothing follows."""
         if self.prior.metric and self.prior.exact:
             return
         for k in keyframes:
             if k not in self.mapper.depths:
                 continue
             new, old = self.buf.depth(k), self._mapped_depth[k]
-            ok = (old > 0) & (new > 0)
-            s = float(np.median(new[ok] / old[ok])) if ok.any() else 1.0
-            if abs(np.log(s)) > 1e-3:  # smaller changes accumulate until they count
-                self.mapper.map.scale_anchored(k, self.buf.get_poses()[k], s)
-                self._mapped_depth[k] = new
+            self.mapper.map.follow_depth(k, self.buf.get_poses()[k], self.seq.rig, self.buf.cameras, depth_ratio(old, new))
+            self._mapped_depth[k] = new
             self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k)
 
     def add_keyframe(self, frame) -> int:
@@ -186,8 +181,8 @@ class SLAM:
         k = buf.add(frame.index, frame.timestamp, frame.images, T_init, disp, depth_prior=prior if self.prior.metric else None, prior_conf=conf)
         if len(buf) > 1:
             window = sliding_window(len(buf), tc.window)
-            edges = build_edges(window, len(self.seq.rig), self.overlap, radius=tc.temporal_radius, cross_view=tc.cross_view)
-            self._solve(edges, window, fresh=set(window[-tc.temporal_radius - 1 :]))
+            self.graph.update_window(window, cross_view=tc.cross_view)
+            self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :]))
         return k
 
     def mapping_depths(self, frame, k: int) -> list:
@@ -222,7 +217,7 @@ class SLAM:
         from the view with confident correspondences, or a confident prior)."""
         total = np.array(self.buf.prior_conf[k] > 0.5) if self.prior.metric else np.zeros((len(self.seq.rig), self.buf.h, self.buf.w), bool)
         weight = np.zeros(total.shape, np.float32)
-        for (i, ci, j, cj), (_t, w) in self._flows.items():
+        for (i, ci, _j, _cj, _kind), _t, w in self.graph.items():
             if i == k:
                 weight[ci] += w
         return total | (weight >= 1.0)
@@ -245,9 +240,7 @@ class SLAM:
             timestamps=np.array(buf.timestamps),
             frame_index=np.array(buf.frame_index, dtype=np.int64),
             kf_frames=np.array(kf_frames, dtype=np.int64),
-            flow_keys=np.array(list(self._flows), dtype=np.int32).reshape(-1, 4),
-            flow_targets=np.array([v[0] for v in self._flows.values()], dtype=np.float32).reshape(-1, buf.h, buf.w, 2),
-            flow_weights=np.array([v[1] for v in self._flows.values()], dtype=np.float32).reshape(-1, buf.h, buf.w),
+            **self.graph.state_arrays(),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             **{f"targets_cam{c}": np.array([self.mapper.depths[k][c] for k in sorted(self._mapped_depth)] if self._deferred_first() else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
@@ -278,7 +271,7 @@ class SLAM:
             buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
         buf.scales[: len(a["scales"])] = a["scales"]
-        self._flows = {tuple(int(v) for v in key): (t, w) for key, t, w in zip(a["flow_keys"], a["flow_targets"], a["flow_weights"])}
+        self.graph.load_state_arrays(a)
         self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
         if self._deferred_first():  # estimated targets: restore them as they were
             depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
@@ -345,14 +338,21 @@ class SLAM:
         self.poses_before_global_ba = self.buf.get_poses()  # keyframe T_w_b (benchmarks/scaling.py: drift)
         if rc.global_ba_iterations and len(self.buf) > 1:
             self.progress("global BA", 0, 1, force=True)
-            edges = build_edges(range(len(self.buf)), len(self.seq.rig), self.overlap, radius=rc.global_ba_radius, cross_view=self.cfg.tracking.cross_view)
+            everything = list(range(len(self.buf)))
+            online = self.graph.cfg
+            # long edges: overlapping views up to global_ba_radius keyframes apart, then revisits
+            self.graph.cfg = replace(online, max_per_view=2 * rc.global_ba_radius, min_overlap=GLOBAL_BA_MIN_OVERLAP)
+            self.graph.update_window(everything, cross_view=self.cfg.tracking.cross_view, max_gap=rc.global_ba_radius)
+            self.graph.cfg = online
+            self.measure(guided_new=True)
+            self.loops = self.graph.close_loops(self.oracle or self.guided)
             saved = self.mcba.cfg.iterations, self.mcba.cfg.prior_weight
             self.mcba.cfg.iterations = rc.global_ba_iterations
             if not self.prior.exact:
                 # the long edges measure what the online window could not; an inexact prior,
                 # JDSA-scaled to the online estimate, would only hold that estimate in place
                 self.mcba.cfg.prior_weight = 0.0
-            self._solve(edges, list(range(len(self.buf))), guided_new=True)
+            self._solve(everything, guided_new=True)
             self.mcba.cfg.iterations, self.mcba.cfg.prior_weight = saved
             self.seconds["global_ba"] = time.perf_counter() - t0
             self.progress("global BA", 1, 1, force=True)
@@ -383,6 +383,16 @@ class SLAM:
             out[i, :3, 3] = (1 - u) * T_kf[a, :3, 3] + u * T_kf[b, :3, 3]
             out[i, :3, :3] = quat_to_matrix(slerp(q_kf[a], q_kf[b], u))
         return Trajectory(stamps, out)
+
+
+def depth_ratio(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Per-pixel ``new / old`` [C,h,w] of two grid depths (1 where either is unknown),
+    3x3-median filtered (one noisy pixel moves no Gaussian) and clipped to [0.5, 2]."""
+    import cv2
+
+    ok = (old > 0) & (new > 0)
+    r = np.where(ok, new / np.where(ok, old, 1.0), 1.0).astype(np.float32)
+    return np.clip(np.stack([cv2.medianBlur(x, 3) for x in r]), 0.5, 2.0)
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mcgs_warp.data.synthetic import SceneRenderer, build_scene
-from mcgs_warp.frontend.stereo import RigStereo, StereoConfig
+from mcgs_warp.frontend.stereo import RigStereo, StereoConfig, upsample_nearest
 from mcgs_warp.geometry import pose, yaw_pitch_roll
 from mcgs_warp.rig import CameraSpec, Rig
 
@@ -76,3 +76,40 @@ def test_left_right_check_removes_mismatches():
 
     checked, unchecked = gross(1.0), gross(1e9)
     assert checked < 0.5 * unchecked, (checked, unchecked)
+
+
+def test_temporal_sources_measure_the_far_scene_the_rig_baseline_cannot():
+    """A 0.1 m rig pair resolves the far end of the room poorly; sweeping the same view
+    against the camera 2 m further back (the rig's own travel, at known poses) measures it,
+    and the merge keeps, per pixel, the estimate with the most parallax."""
+    rig = two_camera_rig("pinhole", baseline=0.1)
+    T_w_b = np.eye(4)
+    T_w_b[:3, :3] = yaw_pitch_roll(0.15)  # down the room: far pixels at 8-25 m
+    T_w_b[:3, 3] = (3.0, 0.0, 1.4)
+    T_back = T_w_b.copy()
+    T_back[:3, 3] = (1.0, -0.4, 1.4)  # 2 m of travel back, a little to the side
+    images, depths = render(rig, T_w_b)
+    back, _ = render(rig, T_back)
+    stereo = RigStereo(rig, np.ones((2, 2)), StereoConfig(far=60.0))
+    spec = rig.cameras[0]
+    T_src_ref = np.linalg.inv(T_back @ spec.T_b_c) @ (T_w_b @ spec.T_b_c)
+    s = stereo.cfg.scale
+    rig_d, rig_c = stereo.depth(0, images)
+    t_d, t_c = stereo.temporal_depth(0, images, [[(back[0], T_src_ref)], []])
+    t_d, t_c = upsample_nearest(t_d[0], spec, s), upsample_nearest(t_c[0], spec, s)
+    gt = depths[0]
+
+    far = gt > 8.0
+
+    def error(d, c, mask):
+        ok = (c > 0) & mask
+        return np.median(np.abs(d[ok] - gt[ok]) / gt[ok]), ok.sum()
+
+    rig_err, rig_n = error(rig_d[0], rig_c[0], far)
+    t_err, t_n = error(t_d, t_c, far)
+    assert t_n >= rig_n, (t_n, rig_n)  # the merge loses no confident far pixel
+    assert t_err < 0.8 * rig_err, (t_err, rig_err)
+    temporal = t_d != rig_d[0]  # where the temporal sweep won
+    won_err, won_n = error(t_d, t_c, far & temporal)
+    assert won_n > 0.2 * far.sum() and won_err < 0.1, (won_n, won_err)
+    assert error(rig_d[0], rig_c[0], far & temporal & (rig_c[0] > 0))[0] > 1.5 * won_err

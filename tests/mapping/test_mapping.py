@@ -163,22 +163,63 @@ def test_densify_and_prune_counts(fitted, mapping_seq):
     assert np.isclose(np.exp(after["log_scales"]).max(1), 0.2 / 1.6).sum() == 10  # split children
 
 
-def test_scale_anchored_follows_a_depth_scale_change():
-    """Eq. 13: a keyframe's depth rescaled by s moves its Gaussians along their rays from
-    its rig origin (x <- c + s (x - c)) and scales their sizes by s; others stay put."""
+def test_follow_depth_moves_each_gaussian_along_its_camera_ray(mapping_seq):
+    """Eq. 13 per pixel: a keyframe's depth change (new / old on the reduced grid, a
+    different field per camera) moves each of its Gaussians along the ray of the camera that
+    sees it nearest its image centre by the ratio at its pixel, and scales its size alike;
+    Gaussians of other keyframes and ones no camera sees stay put."""
     import warp as wp
 
+    from mcgs_warp.ba.graph import unproject_pixels
+    from mcgs_warp.buffer import KeyframeBuffer
+    from mcgs_warp.kernels import reference
+
+    rig = mapping_seq.rig
+    buf = KeyframeBuffer(rig, stride=8, capacity=2)
     rng = np.random.default_rng(0)
+    T_w_b = mapping_seq.groundtruth.poses[3]
+    C, h, w = len(rig), buf.h, buf.w
+    v, u = np.mgrid[0:h, 0:w]
+    ratio = np.stack([1.0 + 0.3 * u / (w - 1), np.full((h, w), 0.8), 1.1 - 0.2 * v / (h - 1)]).astype(np.float32)
+    pts = []
+    for c, spec in enumerate(buf.reduced):  # points anywhere in each camera's view, 2-6 m away
+        uv = rng.uniform(0, 1, (150, 2)) * (spec.width - 1, spec.height - 1)
+        T = T_w_b @ spec.T_b_c
+        X_c = unproject_pixels(spec.warp_camera(), uv) * rng.uniform(2.0, 6.0, (150, 1))
+        pts.append(X_c @ T[:3, :3].T + T[:3, 3])
+    X = np.concatenate(pts)
+    # NumPy reference: the camera that sees each point nearest its image centre, bilinear ratio there
+    best, expect, ratios, seen = np.full(len(X), np.inf), X.copy(), np.ones(len(X)), np.zeros(len(X), int)
+    for c, spec in enumerate(buf.reduced):
+        T = T_w_b @ spec.T_b_c
+        Xc = (X - T[:3, 3]) @ T[:3, :3]
+        cam = spec.warp_camera()
+        with np.errstate(all="ignore"):
+            ok = reference.in_domain(cam, Xc)
+            p = reference.project(cam, np.where(ok[:, None], Xc, [0.0, 0.0, 1.0]))
+        ok &= (p[:, 0] >= 0) & (p[:, 1] >= 0) & (p[:, 0] <= spec.width - 1) & (p[:, 1] <= spec.height - 1)
+        seen += ok
+        r2 = ((p[:, 0] - (spec.width - 1) / 2) / spec.width) ** 2 + ((p[:, 1] - (spec.height - 1) / 2) / spec.height) ** 2
+        take = ok & (r2 < best)
+        x0 = np.clip(np.floor(p[take, 0]).astype(int), 0, spec.width - 2)
+        y0 = np.clip(np.floor(p[take, 1]).astype(int), 0, spec.height - 2)
+        fx, fy = p[take, 0] - x0, p[take, 1] - y0
+        R = ratio[c]
+        r = R[y0, x0] * (1 - fx) * (1 - fy) + R[y0, x0 + 1] * fx * (1 - fy) + R[y0 + 1, x0] * (1 - fx) * fy + R[y0 + 1, x0 + 1] * fx * fy
+        best[take], ratios[take] = r2[take], r
+        expect[take] = T[:3, 3] + r[:, None] * (X[take] - T[:3, 3])
+    assert (seen >= 2).sum() >= 10, (seen >= 2).sum()  # some points lie where two views overlap
+    behind = T_w_b[:3, 3] - 3.0 * T_w_b[:3, 2]  # straight below the rig: no camera sees it
     gm = GaussianMap("cpu")
-    means = rng.uniform(-3, 3, (6, 3))
-    gm.append(means[:3], np.full((3, 3), 0.5), np.full((3, 3), -3.0), anchor=0)
-    gm.append(means[3:], np.full((3, 3), 0.5), np.full((3, 3), -2.0), anchor=1)
-    T = np.eye(4)
-    T[:3, 3] = (1.0, -2.0, 0.5)
-    gm.scale_anchored(1, T, 1.2)
+    gm.append(X, np.full((len(X), 3), 0.5), np.full((len(X), 3), -3.0), anchor=1)
+    gm.append(X[:5] + 1.0, np.full((5, 3), 0.5), np.full((5, 3), -2.0), anchor=0)
+    gm.append(behind[None], np.full((1, 3), 0.5), np.full((1, 3), -2.0), anchor=1)
+    gm.follow_depth(1, T_w_b, rig, buf.cameras, ratio)
     wp.synchronize()
     d = gm.to_numpy()
-    np.testing.assert_allclose(d["means"][:3], means[:3], atol=1e-6)
-    np.testing.assert_allclose(d["means"][3:], T[:3, 3] + 1.2 * (means[3:] - T[:3, 3]), atol=1e-5)
-    np.testing.assert_allclose(d["log_scales"][3:], -2.0 + np.log(1.2), atol=1e-6)
-    np.testing.assert_allclose(d["log_scales"][:3], -3.0)
+    n = len(X)
+    np.testing.assert_allclose(d["means"][:n], expect, atol=2e-4)
+    np.testing.assert_allclose(d["log_scales"][:n, 0], -3.0 + np.log(ratios), atol=1e-4)
+    np.testing.assert_allclose(d["means"][n : n + 5], X[:5] + 1.0, atol=1e-6)
+    np.testing.assert_allclose(d["means"][-1], behind, atol=1e-6)
+
