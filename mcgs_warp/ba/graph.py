@@ -505,12 +505,7 @@ class FactorGraph:
         """Drop every edge (active or stored) touching ``keyframes``, with its
         correspondences (the keyframes left the buffer or were re-initialized). Returns the count."""
         ks = {int(k) for k in keyframes}
-        gone = [k for k in self._kind if k[0] in ks or k[2] in ks]
-        for k in gone:
-            self._active.pop(k, None)
-            self._corr.pop(k, None)
-            del self._kind[k]
-        return len(gone)
+        return self.forget(self._rows([k for k in self._kind if k[0] in ks or k[2] in ks]))
 
     # ---- correspondences ---------------------------------------------------------------
     def has_correspondences(self, key) -> bool:
@@ -519,9 +514,7 @@ class FactorGraph:
     def missing(self, edges=None) -> np.ndarray:
         """Edges [M,5] among ``edges`` (default: the active ones) without correspondences."""
         keys = list(self._active) if edges is None else self._keys(edges)
-        for k in keys:
-            self._kind.setdefault(k, _edge_kind(*k))
-        return self._rows(k for k in dict.fromkeys(keys) if k not in self._corr)
+        return self._rows_known(k for k in dict.fromkeys(keys) if k not in self._corr)
 
     def set_correspondences(self, edges, targets, weights) -> None:
         """Store ``targets`` [E,h,w,2] and ``weights`` [E,h,w] for ``edges`` [E,>=4] (known
@@ -558,10 +551,21 @@ class FactorGraph:
         return rows
 
     def _rows_of(self, edges) -> np.ndarray:
-        keys = list(dict.fromkeys(self._keys(edges)))
-        for k in keys:
-            self._kind.setdefault(k, _edge_kind(*k))
-        return self._rows(keys)
+        return self._rows_known(dict.fromkeys(self._keys(edges)))
+
+    def _rows_known(self, keys) -> np.ndarray:
+        """Rows [N,5] of ``keys``, the kind inferred for edges the graph does not know (asking
+        about an edge does not add it)."""
+        return np.array([(*k, self._kind.get(k, _edge_kind(*k))) for k in keys], dtype=np.int32).reshape(-1, 5)
+
+    def forget(self, edges) -> int:
+        """Drop ``edges`` [E,>=4] (active or stored) with their correspondences; returns the count."""
+        gone = [k for k in self._keys(edges) if k in self._kind]
+        for k in gone:
+            self._active.pop(k, None)
+            self._corr.pop(k, None)
+            del self._kind[k]
+        return len(gone)
 
     def refresh(self, provider, keyframes, kinds=(TEMPORAL, CROSS_TIME, LOOP)) -> np.ndarray:
         """Recompute with ``provider`` (e.g. :class:`GuidedDIS`, from the current geometry) the

@@ -11,8 +11,8 @@ The depths are eliminated with the Schur complement (eq. 10, ``C^-1 = 1/C``),
 ``(B - E C^-1 E^T) dxi = v - E C^-1 w``, sparsely and on the device: a depth of view
 (i, ci) couples only to pose i and to the far poses of the edges leaving (i, ci), so
 :func:`~mcgs_warp.kernels.ba.schur_pairs_kernel` reduces, for every pair of pose edges
-leaving one view, four 6x6 blocks; Python adds them (and B's per-edge blocks) into the
-6n x 6n reduced camera system. Work and memory grow with edges (and edge pairs) x grid
+leaving one view, four 6x6 blocks; ``schur_scatter_kernel`` and ``pose_system_kernel`` add
+them and B's per-edge blocks into the 6n x 6n reduced camera system (float64), on the device. Work and memory grow with edges (and edge pairs) x grid
 pixels, never with keyframes^2 beyond that small system. SciPy solves it; the
 back-substitution ``dd = C^-1 (w - E^T dxi)``, the candidate state and its cost stay on
 the device, and the step is accepted only if the robust cost falls
@@ -92,8 +92,8 @@ class MCBA:
         """Robust reprojection cost plus the prior cost at the given (or current) state.
 
         ``edge_arrays``: :meth:`_arrays` of edges indexed like ``disp`` [K,C,h,w] and
-        ``poses`` [K] (default: the buffer's); ``prior``: ``(keyframes, target, mask)``
-        as :meth:`prior_target` returns them."""
+        ``poses`` [K] (default: the buffer's); ``prior``: ``(keyframes, target, mask)`` with
+        ``(target, mask)`` from :meth:`prior_target` of those keyframes."""
         from ..kernels.ba import window_copy_kernel
 
         buf, dev = self.buf, self.buf.device
@@ -115,6 +115,8 @@ class MCBA:
         no gauge, no damping of ``S``; depth block damped by ``lam``, default the
         configured initial damping). For tests and diagnostics; :meth:`solve` uses the same path."""
         edges = np.asarray(edges)
+        if len(edges) == 0:
+            raise ValueError("reduced_system needs at least one edge")
         keyframes = self._window(edges, keyframes)
         prior = self.prior_target(keyframes) if self.cfg.prior_weight > 0 else None
         win = _Window(self.buf, self.cfg, keyframes, edges, targets, weights, prior)

@@ -1,30 +1,14 @@
-"""Offline global refinement (paper §III-C), after the online loop.
-
-1. Global bundle adjustment: MCBA over all keyframes (temporal and cross-view edges
-   from the flow front end), first keyframe fixed; the map follows the keyframes
-   (eq. 12).
-2. Joint refinement of the map, the keyframe rig poses and the per-image affine
-   exposures through the renderer.
+"""Offline refinement (paper §III-C), after the online loop and global bundle adjustment
+(:meth:`mcgs_warp.system.slam.SLAM.refine`: MCBA over every keyframe on the factor graph,
+with long and loop edges): joint refinement of the map, the keyframe rig poses and the
+per-image affine exposures through the renderer.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..ba.graph import build_edges, camera_overlap
-from ..ba.mcba import MCBA, MCBAConfig, MCBAStats
 from .mapper import Mapper
-
-
-def global_bundle_adjustment(mapper: Mapper, flow, config: MCBAConfig | None = None, radius: int = 2) -> MCBAStats:
-    """MCBA over every keyframe of the mapper's buffer; anchored Gaussians follow."""
-    buf = mapper.buf
-    edges = build_edges(range(len(buf)), len(buf.rig), camera_overlap(buf.rig, stride=buf.stride), radius=radius)
-    targets, weights = flow.correspondences(buf, edges)
-    before = buf.get_poses()
-    stats = MCBA(buf, config or MCBAConfig(iterations=5)).solve(edges, targets, weights, keyframes=range(len(buf)))
-    mapper.map.follow_keyframes(before, buf.get_poses())
-    return stats
 
 
 def joint_refinement(mapper: Mapper, iterations: int, poses: bool = True, exposure: bool = True, progress=None):

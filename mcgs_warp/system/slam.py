@@ -12,6 +12,7 @@ exposures. Deterministic for a seed.
 
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..ba.graph import FactorGraph, GraphConfig, camera_overlap, sliding_window
+from ..ba.graph import TEMPORAL, FactorGraph, GraphConfig, camera_overlap, sliding_window
 from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
@@ -37,6 +38,7 @@ from .config import RunConfig
 
 
 GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
+log = logging.getLogger("mcgs_warp.slam")
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
@@ -150,13 +152,18 @@ class SLAM:
         the new estimate. Exact sensor depth is its own target: nothing follows."""
         if self.prior.metric and self.prior.exact:
             return
-        for k in keyframes:
-            if k not in self.mapper.depths:
-                continue
-            new, old = self.buf.depth(k), self._mapped_depth[k]
-            self.mapper.map.follow_depth(k, self.buf.get_poses()[k], self.seq.rig, self.buf.cameras, depth_ratio(old, new))
-            self._mapped_depth[k] = new
-            self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k)
+        mapped = [k for k in keyframes if k in self.mapper.depths]
+        if not mapped:
+            return
+        disp, poses = self.buf.disp.numpy(), self.buf.get_poses()  # read once, not per keyframe
+        weight = self._measured_weight(mapped)
+        for k in mapped:
+            new, old = np.where(disp[k] > 0, 1.0 / np.maximum(disp[k], 1e-12), 0.0), self._mapped_depth[k]
+            ratio = depth_ratio(old, new)
+            self.mapper.map.follow_depth(k, poses[k], self.seq.rig, self.buf.cameras, ratio)
+            # what the Gaussians now stand for: the part of the change the filter or clip held back stays due
+            self._mapped_depth[k] = np.where((old > 0) & (new > 0), old * ratio, new)
+            self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k, disp[k], weight[k])
 
     def add_keyframe(self, frame) -> int:
         buf, tc = self.buf, self.cfg.tracking
@@ -182,10 +189,21 @@ class SLAM:
         if len(buf) > 1:
             window = sliding_window(len(buf), tc.window)
             self.graph.update_window(window, cross_view=tc.cross_view)
+            self._link_newest(k)
             self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :]))
         return k
 
-    def mapping_depths(self, frame, k: int) -> list:
+    def _link_newest(self, k: int) -> None:
+        """A new keyframe whose views overlap no one else's by the graph's measure (a fast
+        turn, a poor constant-velocity start) would not be tracked at all: link each of its
+        cameras to the previous keyframe's, as DROID-SLAM always keeps the nearest edge."""
+        linked = {int(ci) for i, ci, j, _cj, _kind in self.graph.edges if i == k and j != k}
+        lonely = [c for c in range(len(self.seq.rig)) if c not in linked]
+        if lonely:
+            self.graph.add([(k, c, k - 1, c, TEMPORAL) for c in lonely] + [(k - 1, c, k, c, TEMPORAL) for c in lonely])
+            log.warning("keyframe %d: camera(s) %s overlap no view of the window; linked to keyframe %d", k, lonely, k - 1)
+
+    def mapping_depths(self, frame, k: int, disp=None, weight=None) -> list:
         """Full-resolution depth targets for mapping (which also seed its Gaussians): exact
         sensor depth as is; otherwise the current estimate (MCBA depth, upsampled in inverse
         depth, where correspondences or a prior constrain it), sharpened by the JDSA-scaled
@@ -196,8 +214,8 @@ class SLAM:
         if self.prior.metric and self.prior.exact:
             return list(frame.depths)
         buf, s = self.buf, self.buf.stride
-        disp = buf.disp.numpy()[k]
-        constrained = self._constrained(k)
+        disp = buf.disp.numpy()[k] if disp is None else disp
+        constrained = self._constrained(k, self._measured_weight([k])[k] if weight is None else weight)
         depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
         out = []
         for c, spec in enumerate(self.seq.rig.cameras):
@@ -212,14 +230,20 @@ class SLAM:
             out.append(full)
         return out
 
-    def _constrained(self, k: int) -> np.ndarray:
-        """[C,h,w] bool: grid pixels of keyframe k whose depth something measured (an edge
-        from the view with confident correspondences, or a confident prior)."""
-        total = np.array(self.buf.prior_conf[k] > 0.5) if self.prior.metric else np.zeros((len(self.seq.rig), self.buf.h, self.buf.w), bool)
-        weight = np.zeros(total.shape, np.float32)
+    def _measured_weight(self, keyframes) -> dict:
+        """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or
+        stored) leaving each of its grid pixels, in one pass over the graph."""
+        ks = set(keyframes)
+        out = {k: np.zeros((len(self.seq.rig), self.buf.h, self.buf.w), np.float32) for k in ks}
         for (i, ci, _j, _cj, _kind), _t, w in self.graph.items():
-            if i == k:
-                weight[ci] += w
+            if i in ks:
+                out[i][ci] += w
+        return out
+
+    def _constrained(self, k: int, weight: np.ndarray) -> np.ndarray:
+        """[C,h,w] bool: grid pixels of keyframe k whose depth something measured (confident
+        correspondences from the view, ``weight`` from :meth:`_measured_weight`, or a confident prior)."""
+        total = np.array(self.buf.prior_conf[k] > 0.5) if self.prior.metric else np.zeros(weight.shape, bool)
         return total | (weight >= 1.0)
 
     # ----------------------------------------------------------------------------------
@@ -271,6 +295,8 @@ class SLAM:
             buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
         buf.scales[: len(a["scales"])] = a["scales"]
+        if "graph_edges" not in a:
+            raise InputError(path, None, "checkpoint was written by an older version (no factor graph); start without --resume")
         self.graph.load_state_arrays(a)
         self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
         if self._deferred_first():  # estimated targets: restore them as they were
@@ -342,8 +368,10 @@ class SLAM:
             online = self.graph.cfg
             # long edges: overlapping views up to global_ba_radius keyframes apart, then revisits
             self.graph.cfg = replace(online, max_per_view=2 * rc.global_ba_radius, min_overlap=GLOBAL_BA_MIN_OVERLAP)
-            self.graph.update_window(everything, cross_view=self.cfg.tracking.cross_view, max_gap=rc.global_ba_radius)
-            self.graph.cfg = online
+            try:
+                self.graph.update_window(everything, cross_view=self.cfg.tracking.cross_view, max_gap=rc.global_ba_radius)
+            finally:
+                self.graph.cfg = online
             self.measure(guided_new=True)
             self.loops = self.graph.close_loops(self.oracle or self.guided)
             saved = self.mcba.cfg.iterations, self.mcba.cfg.prior_weight
