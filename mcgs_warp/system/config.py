@@ -30,7 +30,7 @@ class TrackingConfig:
     stride: int = 8  # px: inverse depth and flow live on every 8th pixel (the reduced grid)
     window: int = 8  # keyframes in the MCBA sliding window
     keyframe_flow_px: float = THRESHOLD_PX  # full-resolution px: new keyframe when the mean flow since the last exceeds this
-    temporal_radius: int = 2  # keyframes: temporal edges link keyframes up to this far apart
+    temporal_radius: int = 2  # each view links to up to 2x this many overlapping views of the window (nearest first); the last radius+1 keyframes' edges are re-matched between MCBA rounds
     cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8)
     mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
     huber_px: float = MCBAConfig.huber_delta  # grid px: Huber threshold of the reprojection residuals
@@ -49,7 +49,7 @@ class MappingRunConfig(MappingConfig):
 @dataclass
 class RefinementConfig:
     global_ba_iterations: int = 4  # LM iterations of the offline MCBA over all keyframes (0: none)
-    global_ba_radius: int = 6  # keyframes: its temporal edges reach this far (longer baselines than online, so far depth is measured)
+    global_ba_radius: int = 6  # keyframes: its edges link overlapping views up to this far apart (longer baselines than online, so far depth is measured), plus confirmed loop edges
     iterations: int = 120  # joint refinement iterations (Adam steps) of map, poses and exposures
     poses: bool = True  # refine the rig poses through the renderer
     exposure: bool = True  # fit a per-image affine colour (gain, bias)
