@@ -104,6 +104,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "correspondences": slam.cfg.tracking.correspondences,
         "n_gaussians": len(slam.mapper.map),
         "n_keyframes": len(buf),
+        "loop_edges": int(sum(bool(c.accepted) for c in slam.loops)),  # revisit candidates global BA confirmed
         "n_frames": len(seq),
         "seconds_total": float(seconds_total),
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},

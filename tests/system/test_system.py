@@ -48,6 +48,7 @@ def test_run_writes_every_output(run_dir):
     # What this run achieves (about 1.3 mm SE(3) on 0.8 m, scale 1.003, 30 dB), with a margin.
     assert metrics["ate_se3_rmse_m"] < 0.003 and abs(metrics["sim3_scale"] - 1) < 0.01, metrics
     assert metrics["psnr_db"] > 27 and metrics["depth_l1_m"] < 0.2, metrics
+    assert isinstance(metrics["loop_edges"], int)  # loop detection itself: tests/ba/test_graph.py
     traj = read_tum(run / "trajectory.txt")
     assert len(traj) == 6
     # metrics.json holds what the written trajectory scores against the ground truth
