@@ -198,6 +198,12 @@ class GaussianMap:
         scale = np.clip(0.5 * dist[:, 1:].mean(1), 1e-4, MAX_INITIAL_SCALE)
         return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor)
 
+    def anchors_device(self) -> wp.array:
+        """The anchors on the device (made on first use after the map changed)."""
+        if self._anchors_dev is None:
+            self._anchors_dev = wp.array(self.anchors, dtype=wp.int32, device=self.device)
+        return self._anchors_dev
+
     def move_anchored(self, keyframe: int, delta: np.ndarray, scale: float = 1.0) -> None:
         """Eq. 12-13: apply the world-frame correction ``delta`` (4x4, x <- delta x) to the
         Gaussians anchored to ``keyframe``; multiply their scales by ``scale``."""
@@ -205,13 +211,11 @@ class GaussianMap:
 
         if len(self) == 0:
             return
-        if self._anchors_dev is None:
-            self._anchors_dev = wp.array(self.anchors, dtype=wp.int32, device=self.device)
         g = self.gaussians
         wp.launch(
             move_anchored_kernel,
             dim=len(self),
-            inputs=[g.means, g.quats, g.log_scales, self._anchors_dev, int(keyframe), wp.mat44(*np.asarray(delta, np.float32).ravel()), float(np.log(scale))],
+            inputs=[g.means, g.quats, g.log_scales, self.anchors_device(), int(keyframe), wp.mat44(*np.asarray(delta, np.float32).ravel()), float(np.log(scale))],
             device=self.device,
         )
 
@@ -225,13 +229,11 @@ class GaussianMap:
 
         if len(self) == 0:
             return
-        if self._anchors_dev is None:
-            self._anchors_dev = wp.array(self.anchors, dtype=wp.int32, device=self.device)
         T_c_w = np.stack([np.linalg.inv(np.asarray(T_w_b) @ spec.T_b_c) for spec in rig.cameras])
         T = wp.array(matrix_to_transform7(T_c_w).astype(np.float32), dtype=wp.transform, device=self.device)
         r = wp.array(np.ascontiguousarray(ratio, dtype=np.float32), dtype=float, device=self.device)
         g = self.gaussians
-        wp.launch(follow_depth_kernel, dim=len(self), inputs=[g.means, g.log_scales, self._anchors_dev, int(keyframe), T, cameras, r], device=self.device)
+        wp.launch(follow_depth_kernel, dim=len(self), inputs=[g.means, g.log_scales, self.anchors_device(), int(keyframe), T, cameras, r], device=self.device)
 
     def follow_keyframes(self, old_T_w_b: np.ndarray, new_T_w_b: np.ndarray, scale: float = 1.0) -> None:
         """Move every keyframe's Gaussians from its old to its new rig pose."""

@@ -2,12 +2,13 @@
 
 Per rig frame: keyframe test (mean DIS flow since the last keyframe); for a new
 keyframe: initial pose by constant velocity, depth from the prior, MCBA (+ JDSA)
-over the sliding window with temporal and cross-view edges (JDSA only for inexact,
-monocular-style priors: rescaling exact sensor depth would free the metric scale), anchored Gaussians
-follow the moved keyframes, new Gaussians where the map is empty, and mapping
-iterations. Non-keyframe poses are interpolated between keyframes. After the last
-frame: global MCBA over all keyframes, then joint refinement of map, poses and
-exposures. Deterministic for a seed.
+over the sliding window on the factor graph's edges (views that overlap, and
+cross-view edges; JDSA only for inexact, monocular-style priors: rescaling exact
+sensor depth would free the metric scale), anchored Gaussians follow the moved
+keyframes and, per pixel, their depth changes, new Gaussians where the map is empty,
+and mapping iterations. Non-keyframe poses are interpolated between keyframes. After
+the last frame: global MCBA over all keyframes with long and confirmed loop edges,
+then joint refinement of map, poses and exposures. Deterministic for a seed.
 """
 
 from __future__ import annotations
