@@ -35,6 +35,11 @@ from .se3 import se3_retract, skew, vec6
 wp.set_module_options({"enable_backward": False})
 
 mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float32)
+# Per-edge and per-pair sums over many pixels are accumulated in float64: on CUDA the
+# order of atomic additions varies between runs, and float32 sums would then differ by
+# ~1e-5 relative (and S would not be exactly symmetric).
+mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
 mat26 = wp.types.matrix(shape=(2, 6), dtype=wp.float32)
 
 #: Residuals whose predicted pixel lies further than this outside the image are dropped (px).
@@ -117,8 +122,8 @@ def mcba_linearize_kernel(
     targets: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] corresponding pixel in (j, cj)
     weights: wp.array(dtype=float, ndim=3),  # [E,h,w] confidence >= 0 (NaN/Inf target or weight: 0)
     huber_delta: float,  # px
-    H: wp.array(dtype=mat66, ndim=2),  # [E,3] out: H_ii, H_ij, H_jj
-    g: wp.array(dtype=vec6, ndim=2),  # [E,2] out: v_i, v_j
+    H: wp.array(dtype=mat66d, ndim=2),  # [E,3] out (accumulated, float64): H_ii, H_ij, H_jj
+    g: wp.array(dtype=vec6d, ndim=2),  # [E,2] out (accumulated, float64): v_i, v_j
     Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2] out: E_i, E_j per pixel
     C: wp.array(dtype=float, ndim=4),  # [K,C,h,w] out (accumulated)
     wdepth: wp.array(dtype=float, ndim=4),  # [K,C,h,w] out (accumulated)
@@ -179,11 +184,11 @@ def mcba_linearize_kernel(
             Jj[a, k + 3] = ARj[a, k]
     JiT = wp.transpose(Ji)
     JjT = wp.transpose(Jj)
-    wp.atomic_add(H, e, 0, W * (JiT * Ji))
-    wp.atomic_add(H, e, 1, W * (JiT * Jj))
-    wp.atomic_add(H, e, 2, W * (JjT * Jj))
-    wp.atomic_add(g, e, 0, W * (JiT * r))
-    wp.atomic_add(g, e, 1, W * (JjT * r))
+    wp.atomic_add(H, e, 0, mat66d(W * (JiT * Ji)))
+    wp.atomic_add(H, e, 1, mat66d(W * (JiT * Jj)))
+    wp.atomic_add(H, e, 2, mat66d(W * (JjT * Jj)))
+    wp.atomic_add(g, e, 0, vec6d(W * (JiT * r)))
+    wp.atomic_add(g, e, 1, vec6d(W * (JjT * r)))
     Epix[e, y, x, 0] = W * (JiT * Jd)
     Epix[e, y, x, 1] = W * (JjT * Jd)
 
@@ -232,8 +237,9 @@ def mcba_cost_kernel(
 # ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for (a, b) in (i,i), (i,j2), (j1,i), (j1,j2)
 # (computed once per unordered pair, e1 <= e2: those of (e2, e1) are their transposes):
 # the work and memory grow with edge pairs x pixels, never with keyframes^2. The kernels
-# below compute them per (pair, image row) and add once per row, then scatter the blocks
-# (pairs x 4 x 36 numbers) and the per-edge pose blocks B into S in float64; only S
+# below compute them per (pair, image row) in float32 and add once per row into float64
+# blocks, then scatter the blocks (pairs x 4 x 36 numbers) and the per-edge pose blocks B
+# (also float64 sums) into S; only S
 # [6n,6n] and rhs [6n] go to the host for the pose solve.
 # ---------------------------------------------------------------------------------------
 
@@ -317,7 +323,7 @@ def schur_pairs_kernel(
     edges: wp.array(dtype=wp.vec4i),  # [E] (slot i, ci, slot j, cj)
     pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2): pose edges leaving the same view (i, ci)
     lam: float,  # Levenberg-Marquardt damping of the depth block
-    blocks: wp.array(dtype=mat66, ndim=2),  # [P,4] out (accumulated): (i,i), (i,j2), (j1,i), (j1,j2)
+    blocks: wp.array(dtype=mat66d, ndim=2),  # [P,4] out (accumulated, float64): (i,i), (i,j2), (j1,i), (j1,j2)
 ):
     """Per pair and image row: ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for the four (a, b)."""
     p, y = wp.tid()
@@ -341,10 +347,10 @@ def schur_pairs_kernel(
             M_ij = M_ij + wp.outer(a1, b2)
             M_ji = M_ji + wp.outer(b1, a2)
             M_jj = M_jj + wp.outer(b1, b2)
-    wp.atomic_add(blocks, p, 0, M_ii)
-    wp.atomic_add(blocks, p, 1, M_ij)
-    wp.atomic_add(blocks, p, 2, M_ji)
-    wp.atomic_add(blocks, p, 3, M_jj)
+    wp.atomic_add(blocks, p, 0, mat66d(M_ii))
+    wp.atomic_add(blocks, p, 1, mat66d(M_ij))
+    wp.atomic_add(blocks, p, 2, mat66d(M_ji))
+    wp.atomic_add(blocks, p, 3, mat66d(M_jj))
 
 
 @wp.kernel
@@ -355,7 +361,7 @@ def schur_rhs_kernel(
     edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
     pose_edges: wp.array(dtype=wp.int32),  # [Ep] edges with i != j
     lam: float,
-    out: wp.array(dtype=vec6, ndim=2),  # [E,2] out (accumulated): sum_p E_{e,i} Q w, sum_p E_{e,j} Q w
+    out: wp.array(dtype=vec6d, ndim=2),  # [E,2] out (accumulated, float64): sum_p E_{e,i} Q w, sum_p E_{e,j} Q w
 ):
     """Per pose edge and image row, the depth part of the reduced gradient ``E C^-1 w``."""
     k, y = wp.tid()
@@ -369,13 +375,13 @@ def schur_rhs_kernel(
         if qw != 0.0:
             acc_i = acc_i + qw * Epix[e, y, x, 0]
             acc_j = acc_j + qw * Epix[e, y, x, 1]
-    wp.atomic_add(out, e, 0, acc_i)
-    wp.atomic_add(out, e, 1, acc_j)
+    wp.atomic_add(out, e, 0, vec6d(acc_i))
+    wp.atomic_add(out, e, 1, vec6d(acc_j))
 
 
 @wp.kernel
 def schur_scatter_kernel(
-    blocks: wp.array(dtype=mat66, ndim=2),  # [P,4] schur_pairs_kernel's blocks
+    blocks: wp.array(dtype=mat66d, ndim=2),  # [P,4] schur_pairs_kernel's blocks
     pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2), e1 <= e2
     edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
     S: wp.array(dtype=wp.float64, ndim=2),  # [6n,6n] out (accumulated): minus the blocks
@@ -391,7 +397,7 @@ def schur_scatter_kernel(
     c = edges[e1][0]  # (., i)
     if k == 1 or k == 3:
         c = edges[e2][2]  # (., j2)
-    v = -wp.float64(blocks[p, k][a, b])
+    v = -blocks[p, k][a, b]
     wp.atomic_add(S, 6 * r + a, 6 * c + b, v)
     if e1 != e2:
         wp.atomic_add(S, 6 * c + b, 6 * r + a, v)
@@ -399,9 +405,9 @@ def schur_scatter_kernel(
 
 @wp.kernel
 def pose_system_kernel(
-    H: wp.array(dtype=mat66, ndim=2),  # [E,3] H_ii, H_ij, H_jj
-    g: wp.array(dtype=vec6, ndim=2),  # [E,2] v_i, v_j
-    depth_rhs: wp.array(dtype=vec6, ndim=2),  # [E,2] schur_rhs_kernel's E C^-1 w
+    H: wp.array(dtype=mat66d, ndim=2),  # [E,3] H_ii, H_ij, H_jj
+    g: wp.array(dtype=vec6d, ndim=2),  # [E,2] v_i, v_j
+    depth_rhs: wp.array(dtype=vec6d, ndim=2),  # [E,2] schur_rhs_kernel's E C^-1 w
     edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
     pose_edges: wp.array(dtype=wp.int32),  # [Ep]
     S: wp.array(dtype=wp.float64, ndim=2),  # [6n,6n] out (accumulated): + B
@@ -412,13 +418,13 @@ def pose_system_kernel(
     e = pose_edges[k]
     i = 6 * edges[e][0]
     j = 6 * edges[e][2]
-    wp.atomic_add(S, i + a, i + b, wp.float64(H[e, 0][a, b]))
-    wp.atomic_add(S, i + a, j + b, wp.float64(H[e, 1][a, b]))
-    wp.atomic_add(S, j + b, i + a, wp.float64(H[e, 1][a, b]))
-    wp.atomic_add(S, j + a, j + b, wp.float64(H[e, 2][a, b]))
+    wp.atomic_add(S, i + a, i + b, H[e, 0][a, b])
+    wp.atomic_add(S, i + a, j + b, H[e, 1][a, b])
+    wp.atomic_add(S, j + b, i + a, H[e, 1][a, b])
+    wp.atomic_add(S, j + a, j + b, H[e, 2][a, b])
     if b == 0:
-        wp.atomic_add(rhs, i + a, wp.float64(g[e, 0][a]) - wp.float64(depth_rhs[e, 0][a]))
-        wp.atomic_add(rhs, j + a, wp.float64(g[e, 1][a]) - wp.float64(depth_rhs[e, 1][a]))
+        wp.atomic_add(rhs, i + a, g[e, 0][a] - depth_rhs[e, 0][a])
+        wp.atomic_add(rhs, j + a, g[e, 1][a] - depth_rhs[e, 1][a])
 
 
 @wp.kernel

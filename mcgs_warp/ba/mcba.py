@@ -210,7 +210,7 @@ class _Window:
     device."""
 
     def __init__(self, buf: KeyframeBuffer, cfg: MCBAConfig, keyframes: list, edges: np.ndarray, targets, weights, prior=None):
-        from ..kernels.ba import mat66, window_copy_kernel
+        from ..kernels.ba import mat66d, vec6d, window_copy_kernel
         from ..kernels.se3 import vec6
 
         self.buf, self.cfg, dev = buf, cfg, buf.device
@@ -234,8 +234,8 @@ class _Window:
         self.poses_c = wp.empty_like(self.poses)
 
         # Linearization (eq. 9), the depth terms with the prior, back-substitution.
-        self.H = wp.empty((E, 3), dtype=mat66, device=dev)
-        self.g = wp.empty((E, 2), dtype=vec6, device=dev)
+        self.H = wp.empty((E, 3), dtype=mat66d, device=dev)
+        self.g = wp.empty((E, 2), dtype=vec6d, device=dev)
         self.Epix = wp.empty((E, h, w, 2), dtype=vec6, device=dev)
         self.Cd = wp.empty(self.shape, dtype=float, device=dev)
         self.wd = wp.empty(self.shape, dtype=float, device=dev)
@@ -261,8 +261,8 @@ class _Window:
         self.pe, self.P = pe, len(pairs)
         self.pose_edges = wp.array(pe.astype(np.int32), dtype=wp.int32, device=dev)
         self.pairs = wp.array(pairs, dtype=wp.vec2i, device=dev)
-        self.blocks = wp.empty((self.P, 4), dtype=mat66, device=dev)
-        self.depth_rhs = wp.empty((E, 2), dtype=vec6, device=dev)
+        self.blocks = wp.empty((self.P, 4), dtype=mat66d, device=dev)
+        self.depth_rhs = wp.empty((E, 2), dtype=vec6d, device=dev)
 
         n6 = 6 * n
         self.S = wp.empty((n6, n6), dtype=wp.float64, device=dev)

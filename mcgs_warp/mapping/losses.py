@@ -188,6 +188,9 @@ class MappingLoss:
         (m) against ``targets`` with ``exposure`` [C,2] float (log a, b) per camera
         (device arrays). Everything stays on the device; see :meth:`LossResult.values`."""
         dev, cams, win = self.device, self.cameras, self.window
+        for name, arr in (("color", color), ("depth", depth), ("exposure", exposure), ("targets.image", targets.image)):
+            if arr.device != dev:  # a kernel would read another device's memory (a crash, not an error)
+                raise ValueError(f"MappingLoss on {dev}: {name} is on {arr.device}")
         r = self.result
         h, d, qa, qb = self._h, self._d, self._quad[0], self._quad[1]
         ls, ld = float(lambda_ssim), float(lambda_depth)

@@ -10,7 +10,7 @@ import warp as wp
 from mcgs_warp.buffer import KeyframeBuffer
 from mcgs_warp.geometry import se3_exp
 from mcgs_warp.kernels import reference
-from mcgs_warp.kernels.ba import mat66, mcba_linearize_kernel
+from mcgs_warp.kernels.ba import mat66d, mcba_linearize_kernel, vec6d
 from mcgs_warp.kernels.se3 import vec6
 from mcgs_warp.rig import CameraSpec, Rig
 
@@ -70,8 +70,8 @@ def test_blocks_match_finite_differences(model):
     weights = rng.uniform(0.2, 1.0, (len(edges), h, w))
 
     E = len(edges)
-    H = wp.zeros((E, 3), dtype=mat66)
-    g = wp.zeros((E, 2), dtype=vec6)
+    H = wp.zeros((E, 3), dtype=mat66d)
+    g = wp.zeros((E, 2), dtype=vec6d)
     Epix = wp.zeros((E, h, w, 2), dtype=vec6)
     Cd = wp.zeros((3, 2, h, w), dtype=float)
     wd = wp.zeros((3, 2, h, w), dtype=float)

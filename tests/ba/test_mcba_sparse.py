@@ -17,7 +17,7 @@ import warp as wp
 from mcgs_warp.ba.graph import build_edges
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
 from mcgs_warp.geometry import matrix_to_transform7, se3_exp
-from mcgs_warp.kernels.ba import mat66, mcba_linearize_kernel
+from mcgs_warp.kernels.ba import mat66d, mcba_linearize_kernel, vec6d
 from mcgs_warp.kernels.se3 import vec6
 from problems import Problem
 
@@ -44,8 +44,8 @@ def dense_linearization(mcba, edges, targets, weights, keyframes, prior):
     buf, cfg = mcba.buf, mcba.cfg
     slot = {k: s for s, k in enumerate(keyframes)}
     n, C, h, w, E = len(keyframes), len(buf.rig), buf.h, buf.w, len(edges)
-    H = wp.zeros((E, 3), dtype=mat66)
-    g = wp.zeros((E, 2), dtype=vec6)
+    H = wp.zeros((E, 3), dtype=mat66d)
+    g = wp.zeros((E, 2), dtype=vec6d)
     Epix = wp.zeros((E, h, w, 2), dtype=vec6)
     Cd = wp.zeros((buf.capacity, C, h, w), dtype=float)
     wd = wp.zeros((buf.capacity, C, h, w), dtype=float)

@@ -39,7 +39,7 @@ class Problem:
             self.depth[c, 5, 6] = 0.0  # nothing rendered here
             self.images.append(img)
             self.depths.append(d_t if with_depth[c] else None)
-        self.loss = MappingLoss(self.cams, "cpu")
+        self.loss = MappingLoss(self.cams, wp.get_device())
         self.targets = self.loss.make_targets(self.images, self.depths)
         self.rays = [self.loss.rays.numpy()[c, :h, :w].astype(np.float64) for c, (h, w) in enumerate(SIZES)]
 
@@ -120,6 +120,16 @@ def test_camera_without_depth_has_no_depth_or_normal_terms():
     np.testing.assert_allclose(gD, ref[2], rtol=1e-4, atol=1e-5 * np.abs(ref[2]).max())
 
 
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a second Warp device (CUDA)")
+def test_arrays_on_another_device_are_an_error_not_a_crash(problem):
+    other = "cpu" if problem.loss.device.is_cuda else "cuda:0"
+    color = wp.array(problem.color, dtype=wp.vec3, device=other)
+    depth = wp.array(problem.depth, dtype=float, device=problem.loss.device)
+    exposure = wp.array(problem.exposure, dtype=float, device=problem.loss.device)
+    with pytest.raises(ValueError, match="color is on"):
+        problem.loss(color, depth, problem.targets, exposure, *LAMBDAS)
+
+
 def test_ssim_kernel_matches_eval_metrics(problem):
     """With l_ssim = 1 and identity exposure the loss is 1 - SSIM per camera."""
     color = problem.color.copy()
@@ -134,7 +144,7 @@ def test_ssim_kernel_matches_eval_metrics(problem):
 
 
 def test_targets_are_cached_per_keyframe_and_remade_when_replaced(problem):
-    loss = MappingLoss(problem.cams, "cpu", cache_size=2)
+    loss = MappingLoss(problem.cams, wp.get_device(), cache_size=2)
     a = loss.targets(0, problem.images, problem.depths)
     assert loss.targets(0, problem.images, problem.depths) is a
     new_images = [img.copy() for img in problem.images]

@@ -1,6 +1,7 @@
 """Gaussian mapping: fitting quality, anchors, exposure, poses, densify/prune."""
 
 import numpy as np
+import warp as wp
 
 from conftest import HELD_OUT, KEYFRAMES, make_mapper
 from mcgs_warp.geometry import matrix_to_quat, quat_to_matrix, se3_exp
@@ -61,7 +62,7 @@ def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
     assert a.any() and (~a).any()
     delta = se3_exp([0.3, -0.1, 0.2, 0.1, -0.2, 0.05])
     R, t = delta[:3, :3], delta[:3, 3]
-    gm = GaussianMap("cpu")
+    gm = GaussianMap(wp.get_device())
     gm.set_numpy(params)
     gm.move_anchored(2, delta, scale=1.5)
     after = gm.to_numpy()
@@ -74,7 +75,7 @@ def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
     T_w_c = fitted.buf.rig.camera_poses(fitted.buf.get_poses()[2])  # the keyframe's 3 cameras
 
     def draw(p, T):
-        g = GaussianMap("cpu")
+        g = GaussianMap(wp.get_device())
         g.set_numpy(p)
         out = render(g.gaussians, Views.create(fitted.cams, T))
         return out.color.numpy(), out.alpha.numpy()
@@ -86,7 +87,7 @@ def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
         return q
 
     def move(p, scale):
-        g = GaussianMap("cpu")
+        g = GaussianMap(wp.get_device())
         g.set_numpy(p)
         g.move_anchored(2, delta, scale=scale)
         return g.to_numpy()
@@ -210,7 +211,7 @@ def test_follow_depth_moves_each_gaussian_along_its_camera_ray(mapping_seq):
         expect[take] = T[:3, 3] + r[:, None] * (X[take] - T[:3, 3])
     assert (seen >= 2).sum() >= 10, (seen >= 2).sum()  # some points lie where two views overlap
     behind = T_w_b[:3, 3] - 3.0 * T_w_b[:3, 2]  # straight below the rig: no camera sees it
-    gm = GaussianMap("cpu")
+    gm = GaussianMap(wp.get_device())
     gm.append(X, np.full((len(X), 3), 0.5), np.full((len(X), 3), -3.0), anchor=1)
     gm.append(X[:5] + 1.0, np.full((5, 3), 0.5), np.full((5, 3), -2.0), anchor=0)
     gm.append(behind[None], np.full((1, 3), 0.5), np.full((1, 3), -2.0), anchor=1)

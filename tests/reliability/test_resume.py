@@ -3,6 +3,7 @@ uninterrupted one does."""
 
 import numpy as np
 import pytest
+import warp as wp
 
 from mcgs_warp.data.synthetic import generate
 from mcgs_warp.data.trajectory import read_tum
@@ -38,8 +39,15 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     a = read_tum(tmp_path / "full" / "trajectory.txt")
     b = read_tum(tmp_path / "cut" / "trajectory.txt")
     assert full["n_keyframes"] == resumed["n_keyframes"] >= 3
-    np.testing.assert_allclose(b.positions, a.positions, atol=1e-6)
-    np.testing.assert_allclose(b.poses, a.poses, atol=1e-6)
+    atol = 1e-6
+    if wp.get_device().is_cuda:
+        # CUDA's float atomics (the renderer's adjoint) sum in a varying order, so two
+        # uninterrupted runs already differ: the resumed run may differ no more than that.
+        run_sequence(data, tmp_path / "again", small_config(), progress=False)
+        spread = np.abs(read_tum(tmp_path / "again" / "trajectory.txt").poses - a.poses).max()
+        atol = max(atol, 5 * spread)
+    np.testing.assert_allclose(b.positions, a.positions, atol=atol)
+    np.testing.assert_allclose(b.poses, a.poses, atol=atol)
     assert resumed["n_gaussians"] == full["n_gaussians"]
     assert resumed["depth_source"] == full["depth_source"] == ("sensor" if depth == "exact" else "stereo")
     if depth == "exact":
