@@ -431,6 +431,7 @@ class FactorGraph:
         self._kind: dict = {}  # key -> kind, every known edge (insertion order)
         self._active: dict = {}  # key -> None: the active edges, in insertion order
         self._corr: dict = {}  # key -> (targets [h,w,2], weights [h,w])
+        self._leaving: dict = {}  # keyframe i -> {key: None}: edges with correspondences leaving i
 
     # ---- membership --------------------------------------------------------------------
     def __len__(self) -> int:
@@ -498,7 +499,7 @@ class FactorGraph:
             del self._active[k]
             if not store:
                 del self._kind[k]
-                self._corr.pop(k, None)
+                self._drop_corr(k)
         return rows
 
     def forget_keyframes(self, keyframes) -> int:
@@ -528,6 +529,20 @@ class FactorGraph:
         for n, k in enumerate(keys):
             self._kind.setdefault(k, _edge_kind(*k))
             self._corr[k] = (t[n].copy(), w[n].copy())
+            self._leaving.setdefault(k[0], {})[k] = None
+
+    def _drop_corr(self, key) -> None:
+        if self._corr.pop(key, None) is not None:
+            self._leaving[key[0]].pop(key, None)
+
+    def measured_weight(self, keyframe: int, n_cameras: int) -> np.ndarray:
+        """[C,h,w] float32: summed correspondence confidence of every edge (active or stored)
+        leaving each grid pixel of ``keyframe`` (which of its pixels something measured).
+        Indexed by source keyframe: the cost grows with that keyframe's edges, not the graph's."""
+        out = np.zeros((n_cameras, self.buf.h, self.buf.w), np.float32)
+        for k in self._leaving.get(int(keyframe), ()):
+            out[k[1]] += self._corr[k][1]
+        return out
 
     def correspondences(self, edges=None):
         """Stacked ``targets`` [E,h,w,2] and ``weights`` [E,h,w] of ``edges`` (default: the
@@ -563,7 +578,7 @@ class FactorGraph:
         gone = [k for k in self._keys(edges) if k in self._kind]
         for k in gone:
             self._active.pop(k, None)
-            self._corr.pop(k, None)
+            self._drop_corr(k)
             del self._kind[k]
         return len(gone)
 
@@ -646,6 +661,6 @@ class FactorGraph:
             raise ValueError("inconsistent factor-graph arrays in the checkpoint")
         self._kind = {tuple(int(v) for v in row[:4]): int(row[4]) for row in e}
         self._active = {tuple(int(v) for v in row[:4]): None for row, a in zip(e, active) if a}
-        self._corr = {}
+        self._corr, self._leaving = {}, {}
         if has.any():
             self.set_correspondences(e[has], t, w)

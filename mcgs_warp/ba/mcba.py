@@ -46,7 +46,7 @@ class MCBAConfig:
     """Solver settings. The defaults are the tuned values the system runs with
     (``mcgs_warp.system.config.TrackingConfig`` takes its defaults from here)."""
 
-    iterations: int = 6  # Levenberg-Marquardt iterations per solve
+    iterations: int = 4  # Levenberg-Marquardt iterations per solve
     huber_delta: float = 0.1  # px on the reduced grid (0.8 px at stride 8): rejects flow bleeding across depth edges
     lm_lambda: float = 1e-4  # initial Levenberg-Marquardt damping (relative to the diagonal)
     prior_weight: float = 0.0  # weight of the inverse-depth prior, px^2 m^2 (0: no prior)

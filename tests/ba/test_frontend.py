@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from mcgs_warp.ba.graph import CROSS_TIME, CROSS_VIEW, TEMPORAL, build_edges, camera_overlap
-from mcgs_warp.frontend.depth import NoDepth, SensorDepth, StereoDepth, choose_prior, grid_depth
+from mcgs_warp.frontend.depth import NoDepth, SensorDepth, StereoDepth, choose_prior, grid_depth, upsample_inverse_depth, upsample_inverse_depth_guided
 from mcgs_warp.frontend.flow import DISFlow, GroundTruthFlow
 from mcgs_warp.frontend.keyframes import KeyframeSelector
+from mcgs_warp.rig import CameraSpec
 from problems import Problem
 
 
@@ -165,3 +166,28 @@ def test_guided_flow_follows_the_geometry(synthetic_seq):
         ok = inside.reshape(z.shape) & (gt_w[e] > 0) & (g_w[e] > 0.3)
         p_err.append(np.linalg.norm(pred - gt_t[e], axis=-1)[ok])
     assert np.median(g_err) < 0.5 * np.median(np.concatenate(p_err)), (np.median(g_err), np.median(np.concatenate(p_err)))
+
+
+def test_guided_upsampling_keeps_depth_edges_where_the_image_has_them():
+    """A near square (2 m, bright) in front of a far wall (20 m, dark) whose border does
+    not fall on the stride-8 grid: bilinear interpolation of the grid samples spreads the
+    edge over a cell, the image-guided upsampling keeps it at the image edge; a constant
+    depth comes back exactly, and pixels with no known sample near them get 0."""
+    spec = CameraSpec("c", "pinhole", 96, 64, (80.0, 80.0, 47.5, 31.5))
+    v, u = np.mgrid[0:64, 0:96]
+    near = (u >= 29) & (u < 67) & (v >= 19) & (v < 45)
+    depth = np.where(near, 2.0, 20.0)
+    image = np.repeat(np.where(near, 0.8, 0.2)[..., None], 3, -1).astype(np.float32)
+    disp = (1.0 / depth[4::8, 4::8]).astype(np.float32)
+    bilinear, _ = upsample_inverse_depth(disp, spec, 8)
+    guided = upsample_inverse_depth_guided(disp, spec, 8, image)
+    err_b, err_g = np.abs(bilinear - depth).mean(), np.abs(guided - depth).mean()
+    assert err_g < 0.25 * err_b, (err_g, err_b)
+    assert np.abs(guided - depth)[near].max() < 0.05 and np.median(np.abs(guided - depth)[~near]) < 1e-3
+
+    flat = upsample_inverse_depth_guided(np.full((8, 12), 0.25, np.float32), spec, 8, image)
+    np.testing.assert_allclose(flat, 4.0, rtol=1e-6)
+    holes = np.full((8, 12), 0.25, np.float32)
+    holes[:, 6:] = 0.0  # right half unknown
+    part = upsample_inverse_depth_guided(holes, spec, 8, image)
+    assert (part[:, :48] > 0).all() and (part[:, 64:] == 0).all()

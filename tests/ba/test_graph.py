@@ -191,6 +191,36 @@ def test_checkpoint_round_trip(loop_seq, tmp_path):
     assert {tuple(e[:4]) for e, _, _ in h.items()} == {(0, 0, 1, 0), (2, 1, 3, 1)}
 
 
+def test_measured_weight_sums_every_edge_leaving_the_keyframe(loop_seq, tmp_path):
+    """The per-source index gives what a scan over all edges gives, after storing,
+    forgetting and a checkpoint round trip."""
+    buf = make_buffer(loop_seq, range(4))
+    g = G.FactorGraph(buf)
+    rng = np.random.default_rng(0)
+    edges = [(0, 0, 1, 0), (0, 1, 1, 1), (0, 0, 2, 0), (1, 0, 0, 0), (2, 2, 0, 2), (0, 2, 0, 1)]
+    t = np.zeros((len(edges), buf.h, buf.w, 2), np.float32)
+    g.add(edges, t, rng.uniform(size=(len(edges), buf.h, buf.w)).astype(np.float32))
+    g.remove([(0, 1, 1, 1)])  # stored: still measured
+    g.forget([(0, 0, 2, 0)])  # forgotten: no longer
+
+    def scan(k):
+        out = np.zeros((3, buf.h, buf.w), np.float32)
+        for e, _, w in g.items():
+            if e[0] == k:
+                out[e[1]] += w
+        return out
+
+    for k in range(4):
+        assert np.array_equal(g.measured_weight(k, 3), scan(k))
+    assert g.measured_weight(0, 3)[1].max() > 0 and not g.measured_weight(3, 3).any()
+    np.savez(tmp_path / "ckpt.npz", **g.state_arrays())
+    h = G.FactorGraph(buf)
+    with np.load(tmp_path / "ckpt.npz") as z:
+        h.load_state_arrays({k: z[k] for k in z.files})
+    for k in range(4):
+        assert np.array_equal(h.measured_weight(k, 3), g.measured_weight(k, 3))
+
+
 def test_loop_edge_found_and_global_ba_closes_the_loop(loop_problem):
     buf, true, graph = loop_problem
     K = len(buf)
