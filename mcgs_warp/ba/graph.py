@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pathlib import Path
+
 import numpy as np
 
 from ..buffer import KeyframeBuffer, grid_pixels
@@ -432,6 +434,7 @@ class FactorGraph:
         self._active: dict = {}  # key -> None: the active edges, in insertion order
         self._corr: dict = {}  # key -> (targets [h,w,2], weights [h,w])
         self._leaving: dict = {}  # keyframe i -> {key: None}: edges with correspondences leaving i
+        self._saved: dict = {}  # key -> (segment, row): where a checkpoint store holds its current correspondences
 
     # ---- membership --------------------------------------------------------------------
     def __len__(self) -> int:
@@ -530,10 +533,12 @@ class FactorGraph:
             self._kind.setdefault(k, _edge_kind(*k))
             self._corr[k] = (t[n].copy(), w[n].copy())
             self._leaving.setdefault(k[0], {})[k] = None
+            self._saved.pop(k, None)  # changed: the next checkpoint writes it again
 
     def _drop_corr(self, key) -> None:
         if self._corr.pop(key, None) is not None:
             self._leaving[key[0]].pop(key, None)
+            self._saved.pop(key, None)
 
     def measured_weight(self, keyframe: int, n_cameras: int) -> np.ndarray:
         """[C,h,w] float32: summed correspondence confidence of every edge (active or stored)
@@ -635,32 +640,81 @@ class FactorGraph:
         return checks
 
     # ---- checkpoints -------------------------------------------------------------------
-    def state_arrays(self) -> dict:
+    def state_arrays(self, store=None) -> dict:
         """Plain arrays for a checkpoint (``np.savez``): ``graph_edges`` [N,5] int32 (every
-        known edge), ``graph_active`` [N] bool, ``graph_has_corr`` [N] bool, and
-        ``graph_targets`` [M,h,w,2] / ``graph_weights`` [M,h,w] float32 for the edges that
-        have correspondences, in order."""
+        known edge), ``graph_active`` [N] bool, ``graph_has_corr`` [N] bool, and the
+        correspondences of the edges that have them, in order: inline as ``graph_targets``
+        [M,h,w,2] / ``graph_weights`` [M,h,w] float32, or, with a ``store`` folder, as
+        ``graph_segment`` / ``graph_row`` [M] int64 into segment files ``store/seg_<n>.npz``.
+        A segment is written once, holding only the correspondences that changed since the
+        last call (so a run's checkpoints write each edge about once, not every edge every
+        time); :meth:`prune_store` removes segments nothing refers to any more."""
         keys = list(self._kind)
         corr = [k for k in keys if k in self._corr]
         h, w = self.buf.h, self.buf.w
-        return {
+        out = {
             "graph_edges": self._rows(keys),
             "graph_active": np.array([k in self._active for k in keys], bool),
             "graph_has_corr": np.array([k in self._corr for k in keys], bool),
-            "graph_targets": np.array([self._corr[k][0] for k in corr], np.float32).reshape(-1, h, w, 2),
-            "graph_weights": np.array([self._corr[k][1] for k in corr], np.float32).reshape(-1, h, w),
         }
+        if store is None:
+            out["graph_targets"] = np.array([self._corr[k][0] for k in corr], np.float32).reshape(-1, h, w, 2)
+            out["graph_weights"] = np.array([self._corr[k][1] for k in corr], np.float32).reshape(-1, h, w)
+            return out
+        from ..io import atomic_write
 
-    def load_state_arrays(self, arrays) -> None:
-        """Restore the state written by :meth:`state_arrays` (replacing the current one)."""
+        fresh = [k for k in corr if k not in self._saved]
+        if fresh:
+            seg = 1 + max((s for s, _ in self._saved.values()), default=-1)
+            seg = max(seg, 1 + max(_segments(store), default=-1))
+            with atomic_write(Path(store) / f"seg_{seg:06d}.npz", "wb") as f:
+                np.savez(f, targets=np.array([self._corr[k][0] for k in fresh], np.float32), weights=np.array([self._corr[k][1] for k in fresh], np.float32))
+            self._saved.update({k: (seg, n) for n, k in enumerate(fresh)})
+        out["graph_segment"] = np.array([self._saved[k][0] for k in corr], np.int64)
+        out["graph_row"] = np.array([self._saved[k][1] for k in corr], np.int64)
+        return out
+
+    def prune_store(self, store) -> int:
+        """Delete the segment files of ``store`` that no edge's current correspondences are
+        in (call after the checkpoint that stopped referring to them is in place). Returns the count."""
+        used = {s for s, _ in self._saved.values()}
+        gone = [n for n in _segments(store) if n not in used]
+        for n in gone:
+            (Path(store) / f"seg_{n:06d}.npz").unlink(missing_ok=True)
+        return len(gone)
+
+    def load_state_arrays(self, arrays, store=None) -> None:
+        """Restore the state written by :meth:`state_arrays` (replacing the current one);
+        ``store``: the segment folder it was written with, if any."""
         e = np.asarray(arrays["graph_edges"]).reshape(-1, 5)
         active = np.asarray(arrays["graph_active"], bool)
         has = np.asarray(arrays["graph_has_corr"], bool)
-        t, w = np.asarray(arrays["graph_targets"]), np.asarray(arrays["graph_weights"])
+        saved = {}
+        if "graph_segment" in arrays:
+            if store is None:
+                raise ValueError("the checkpoint keeps its correspondences in segment files: pass their folder")
+            seg, row = np.asarray(arrays["graph_segment"]), np.asarray(arrays["graph_row"])
+            if len(seg) != has.sum() or len(row) != has.sum():
+                raise ValueError("inconsistent factor-graph arrays in the checkpoint")
+            t = np.zeros((len(seg), self.buf.h, self.buf.w, 2), np.float32)
+            w = np.zeros((len(seg), self.buf.h, self.buf.w), np.float32)
+            for n in np.unique(seg):
+                with np.load(Path(store) / f"seg_{int(n):06d}.npz") as z:
+                    sel = seg == n
+                    t[sel], w[sel] = z["targets"][row[sel]], z["weights"][row[sel]]
+            saved = {tuple(int(v) for v in r[:4]): (int(a), int(b)) for r, a, b in zip(e[has], seg, row)}
+        else:
+            t, w = np.asarray(arrays["graph_targets"]), np.asarray(arrays["graph_weights"])
         if len(active) != len(e) or len(has) != len(e) or len(t) != has.sum() or len(w) != has.sum():
             raise ValueError("inconsistent factor-graph arrays in the checkpoint")
         self._kind = {tuple(int(v) for v in row[:4]): int(row[4]) for row in e}
         self._active = {tuple(int(v) for v in row[:4]): None for row, a in zip(e, active) if a}
-        self._corr, self._leaving = {}, {}
+        self._corr, self._leaving, self._saved = {}, {}, {}
         if has.any():
             self.set_correspondences(e[has], t, w)
+        self._saved = saved
+
+def _segments(store) -> list:
+    """Segment numbers of the files ``seg_<n>.npz`` in ``store`` (none if it does not exist)."""
+    folder = Path(store)
+    return sorted(int(p.stem[4:]) for p in folder.glob("seg_*.npz")) if folder.is_dir() else []

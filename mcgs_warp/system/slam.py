@@ -246,7 +246,9 @@ class SLAM:
 
     # ----------------------------------------------------------------------------------
     def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
-        """Write the whole online state atomically (``path``: a .npz file)."""
+        """Write the whole online state atomically (``path``: a .npz file; the factor graph's
+        correspondences go to segment files beside it, :func:`correspondence_store`, each
+        written once)."""
         import json
 
         from ..io import atomic_write
@@ -262,7 +264,7 @@ class SLAM:
             timestamps=np.array(buf.timestamps),
             frame_index=np.array(buf.frame_index, dtype=np.int64),
             kf_frames=np.array(kf_frames, dtype=np.int64),
-            **self.graph.state_arrays(),
+            **self.graph.state_arrays(correspondence_store(path)),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             **{f"targets_cam{c}": np.array([self.mapper.depths[k][c] for k in sorted(self._mapped_depth)] if self._deferred_first() else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
@@ -270,6 +272,7 @@ class SLAM:
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
+        self.graph.prune_store(correspondence_store(path))  # segments only the replaced checkpoint used
 
     def load_checkpoint(self, path) -> tuple[int, list]:
         """Restore the state saved by :meth:`save_checkpoint`; returns (next frame, keyframe frames)."""
@@ -295,7 +298,10 @@ class SLAM:
         buf.scales[: len(a["scales"])] = a["scales"]
         if "graph_edges" not in a:
             raise InputError(path, None, "checkpoint was written by an older version (no factor graph); start without --resume")
-        self.graph.load_state_arrays(a)
+        try:
+            self.graph.load_state_arrays(a, correspondence_store(path))
+        except (OSError, ValueError, KeyError) as e:
+            raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
         self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
         if self._deferred_first():  # estimated targets: restore them as they were
             depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
@@ -430,3 +436,9 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
         return q / np.linalg.norm(q)
     th = np.arccos(d)
     return (np.sin((1 - u) * th) * q0 + np.sin(u * th) * q1) / np.sin(th)
+
+
+def correspondence_store(checkpoint) -> Path:
+    """The folder beside a checkpoint ``.npz`` that holds its correspondence segments
+    (``out/checkpoint.npz`` -> ``out/checkpoint.corr/``)."""
+    return Path(checkpoint).with_suffix(".corr")

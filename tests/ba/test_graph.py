@@ -221,6 +221,41 @@ def test_measured_weight_sums_every_edge_leaving_the_keyframe(loop_seq, tmp_path
         assert np.array_equal(h.measured_weight(k, 3), g.measured_weight(k, 3))
 
 
+def test_checkpoint_segments_write_each_correspondence_once(loop_seq, tmp_path):
+    """With a segment store a checkpoint writes only the correspondences that changed since
+    the last one; reloading gives back every edge's current correspondences, and segments
+    no checkpoint refers to any more are deleted."""
+    buf = make_buffer(loop_seq, range(4))
+    store = tmp_path / "ckpt.corr"
+    g = G.FactorGraph(buf)
+    rec = Recording()
+    g.add([(0, 0, 1, 0), (1, 0, 0, 0), (1, 1, 2, 1)])
+    g.compute(rec)
+    first = g.state_arrays(store)
+    assert sorted(p.name for p in store.iterdir()) == ["seg_000000.npz"]
+    again = g.state_arrays(store)  # nothing changed: nothing written
+    assert sorted(p.name for p in store.iterdir()) == ["seg_000000.npz"]
+    assert np.array_equal(first["graph_segment"], again["graph_segment"])
+    g.compute(rec, [(1, 1, 2, 1)])  # one edge re-estimated, one new
+    g.add([(2, 0, 3, 0)])
+    g.compute(rec)
+    arrays = g.state_arrays(store)
+    with np.load(store / "seg_000001.npz") as z:
+        assert len(z["targets"]) == 2  # only the two that changed
+    h = G.FactorGraph(buf)
+    h.load_state_arrays(arrays, store)
+    for e in [(0, 0, 1, 0), (1, 0, 0, 0), (1, 1, 2, 1), (2, 0, 3, 0)]:
+        for a, b in zip(h.correspondences([e]), g.correspondences([e])):
+            assert np.array_equal(a, b)
+    assert h.correspondences([(1, 1, 2, 1)])[0].max() == 2  # the re-estimate, not the first
+    g.forget([(0, 0, 1, 0), (1, 0, 0, 0)])
+    g.compute(rec, [(1, 1, 2, 1), (2, 0, 3, 0)])
+    g.state_arrays(store)
+    assert g.prune_store(store) == 2 and sorted(p.name for p in store.iterdir()) == ["seg_000002.npz"]
+    with pytest.raises(ValueError, match="segment"):
+        G.FactorGraph(buf).load_state_arrays(arrays)  # the folder is needed
+
+
 def test_loop_edge_found_and_global_ba_closes_the_loop(loop_problem):
     buf, true, graph = loop_problem
     K = len(buf)

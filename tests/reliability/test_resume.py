@@ -1,6 +1,8 @@
 """Checkpoint and resume: an interrupted run, resumed, ends exactly where an
 uninterrupted one does."""
 
+import shutil
+
 import numpy as np
 import pytest
 import warp as wp
@@ -57,3 +59,8 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     other.mapping.iterations_per_keyframe = 4
     with pytest.raises(InputError, match="another configuration"):
         run_sequence(data, tmp_path / "cut", other, progress=False, resume=True)
+    # the checkpoint's correspondences live beside it: without them resuming is refused, clearly
+    assert any((tmp_path / "cut" / "checkpoint.corr").glob("seg_*.npz"))
+    shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
+    with pytest.raises(InputError, match="checkpoint.corr"):
+        run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
