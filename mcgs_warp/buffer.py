@@ -68,6 +68,22 @@ class KeyframeBuffer:
         self.timestamps: list[float] = []
         self.frame_index: list[int] = []
         self.images: list[list[np.ndarray]] = []
+        self._full_rays = None
+
+    @property
+    def full_rays(self) -> wp.array:
+        """Unit-depth rays [C,H,W] (vec3, on the device) of every full-resolution pixel of each
+        camera, padded to the largest; made on first use and shared by the mapping loss
+        (normals) and the guided flow (reprojection)."""
+        if self._full_rays is None:
+            from .kernels import Camera
+            from .kernels.ba import grid_rays_kernel
+
+            cams = wp.array([c.warp_camera() for c in self.rig.cameras], dtype=Camera, device=self.device)
+            shape = (len(self.rig), max(c.height for c in self.rig.cameras), max(c.width for c in self.rig.cameras))
+            self._full_rays = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+            wp.launch(grid_rays_kernel, dim=shape, inputs=[cams], outputs=[self._full_rays], device=self.device)
+        return self._full_rays
 
     def __len__(self) -> int:
         return len(self.timestamps)

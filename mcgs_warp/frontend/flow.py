@@ -215,14 +215,6 @@ class GuidedDIS(FlowProvider):
 
     def __init__(self, dis: DISFlow):
         self.dis = dis
-        self._rays: dict = {}
-
-    def _full_rays(self, buffer, c):
-        from ..kernels.stereo import camera_rays
-
-        if c not in self._rays:
-            self._rays[c] = camera_rays(buffer.rig.cameras[c].warp_camera(), buffer.device)
-        return self._rays[c]
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
         import cv2
@@ -240,7 +232,7 @@ class GuidedDIS(FlowProvider):
             full, _ = upsample_inverse_depth(disp[i, ci, :hr, :wr], spec_i, s)
             T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
             inv = np.where(full > 0, 1.0 / np.maximum(full, 1e-6), 0.0)
-            pred = reproject(self._full_rays(buffer, ci), inv, T, spec_j.warp_camera(), buffer.device)  # NaN where unknown
+            pred = reproject(buffer.full_rays[int(ci)][: spec_i.height, : spec_i.width], inv, T, spec_j.warp_camera(), buffer.device)  # NaN where unknown
             mx = np.nan_to_num(pred[..., 0], nan=-1e4).astype(np.float32)
             my = np.nan_to_num(pred[..., 1], nan=-1e4).astype(np.float32)
             warped = cv2.remap(buffer.images[j][cj], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -92,7 +92,7 @@ class MappingLoss:
     view; images are padded to the largest). ``cache_size``: keyframes whose targets stay
     on the device. Work buffers are allocated once and reused by every call."""
 
-    def __init__(self, cameras: list, device=None, cache_size: int = 32):
+    def __init__(self, cameras: list, device=None, cache_size: int = 32, rays=None):
         from ..kernels import losses as loss_kernels
         from ..kernels.ba import grid_rays_kernel
 
@@ -103,8 +103,12 @@ class MappingLoss:
         self.W = max(c.width for c in cameras)
         self.cameras = wp.array(cameras, dtype=Camera, device=self.device)
         self.window = wp.array(ssim_window(), dtype=float, device=self.device)
-        self.rays = wp.zeros(self.shape, dtype=wp.vec3, device=self.device)  # unit-depth ray per pixel
-        wp.launch(grid_rays_kernel, dim=self.shape, inputs=[self.cameras], outputs=[self.rays], device=self.device)
+        if rays is None:  # unit-depth ray per pixel [C,H,W] (or the keyframe buffer's, passed in)
+            rays = wp.zeros(self.shape, dtype=wp.vec3, device=self.device)
+            wp.launch(grid_rays_kernel, dim=self.shape, inputs=[self.cameras], outputs=[rays], device=self.device)
+        elif tuple(rays.shape) != tuple(self.shape) or rays.device != self.device:
+            raise ValueError(f"MappingLoss: rays must be {tuple(self.shape)} on {self.device}, got {tuple(rays.shape)} on {rays.device}")
+        self.rays = rays
         self.cache_size = max(1, int(cache_size))
         self._cache: OrderedDict[int, KeyframeTargets] = OrderedDict()
         vec3_maps = [wp.zeros(self.shape, dtype=wp.vec3, device=self.device) for _ in range(8)]

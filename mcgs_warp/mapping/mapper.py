@@ -93,7 +93,7 @@ class Mapper:
         self.optimize_poses = False
         self.fixed_poses: set[int] = {0}
         self.adam = self._new_adam()
-        self.loss = MappingLoss(self.cams, dev, self.cfg.target_cache)
+        self.loss = MappingLoss(self.cams, dev, self.cfg.target_cache, rays=buffer.full_rays)
         # xi_c = Ad(T_c_b) xi_b: camera-pose gradients to the body, transposed adjoints per camera
         adj = np.stack([adjoint(np.linalg.inv(spec.T_b_c)).T for spec in buffer.rig.cameras]).astype(np.float32)
         self._adjoints_T = wp.array(adj, dtype=mat66, device=dev)

@@ -191,3 +191,16 @@ def test_guided_upsampling_keeps_depth_edges_where_the_image_has_them():
     holes[:, 6:] = 0.0  # right half unknown
     part = upsample_inverse_depth_guided(holes, spec, 8, image)
     assert (part[:, :48] > 0).all() and (part[:, 64:] == 0).all()
+
+
+def test_buffer_full_rays_are_each_cameras_pixel_rays(synthetic_seq):
+    """One [C,H,W] ray array (the mapping loss's and the guided flow's) equals each camera's
+    own unit-depth rays, also through the [c][:h,:w] view the guided flow takes."""
+    from mcgs_warp.buffer import KeyframeBuffer
+    from mcgs_warp.kernels.stereo import camera_rays
+
+    buf = KeyframeBuffer(synthetic_seq.rig, stride=8, capacity=2)
+    assert buf.full_rays is buf.full_rays  # made once
+    for c, spec in enumerate(synthetic_seq.rig.cameras):
+        own = camera_rays(spec.warp_camera(), buf.device).numpy()
+        np.testing.assert_array_equal(buf.full_rays[c][: spec.height, : spec.width].numpy(), own)
