@@ -193,7 +193,7 @@ class SLAM:
             window = sliding_window(len(buf), tc.window)
             self.graph.update_window(window, cross_view=self.overlap is not None)
             self._link_newest(k)
-            self._solve(window, fresh={k})  # the new keyframe's edges follow the geometry between rounds
+            self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :]))
         return k
 
     def _link_newest(self, k: int) -> None:
