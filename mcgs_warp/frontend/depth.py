@@ -143,10 +143,11 @@ def upsample_inverse_depth_guided(disp: np.ndarray, spec, stride: int, image: np
     """Joint bilateral upsampling (Kopf et al. 2007) of reduced-grid inverse depth [h,w]
     (1/m, 0 = unknown) to full-resolution depth [H,W] (m, 0 = unknown) of camera ``spec``,
     guided by its full-resolution ``image`` [H,W,3] in [0,1]: each pixel averages the known
-    grid samples within ``radius`` grid cells, weighted by distance (sigma: one cell) and by
-    colour similarity to the pixel (``sigma_color``), so a depth edge stays where the image
-    edge is instead of spreading over a cell as bilinear interpolation does. Pixels with no
-    known sample near them get 0."""
+    grid samples of the ``2 radius`` x ``2 radius`` cells around it, weighted by distance
+    (``sigma_space`` cells) and by colour similarity to the pixel (``sigma_color``), so a
+    depth edge stays where the image edge is instead of spreading over a cell as bilinear
+    interpolation does. Unlike bilinear interpolation it fills a pixel as soon as one of
+    those samples is known; pixels with none get 0."""
     H, W = spec.height, spec.width
     h, w = disp.shape
     o = stride // 2
@@ -169,6 +170,6 @@ def upsample_inverse_depth_guided(disp: np.ndarray, spec, stride: int, image: np
             wgt = np.where(ok, np.exp(-0.5 * dist2 / sigma_space**2 - 0.5 * c2 / sigma_color**2), 0.0)
             num += wgt * d
             den += wgt
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inv = np.where(den > 1e-6, num / den, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):  # float64: even a colour mismatch of 1.7 leaves den > 0
+        inv = np.where(den > 0, num / den, 0.0)
     return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0).astype(np.float32)

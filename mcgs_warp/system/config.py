@@ -31,7 +31,7 @@ class TrackingConfig:
     window: int = 8  # keyframes in the MCBA sliding window
     keyframe_flow_px: float = THRESHOLD_PX  # full-resolution px: new keyframe when the mean flow since the last exceeds this
     temporal_radius: int = 2  # each view links to up to 2x this many overlapping views of the window (nearest first); the last radius+1 keyframes' edges are re-matched between MCBA rounds
-    cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8); never with sensor depth, which already fixes the depth they measure
+    cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8); never with exact sensor depth, which already fixes the depth they measure
     mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
     huber_px: float = MCBAConfig.huber_delta  # grid px: Huber threshold of the reprojection residuals
     prior_weight: float = 30.0  # px^2 m^2: weight of a metric depth prior (sensor, stereo, monocular) in inverse depth, times its confidence

@@ -187,6 +187,12 @@ def test_guided_upsampling_keeps_depth_edges_where_the_image_has_them():
 
     flat = upsample_inverse_depth_guided(np.full((8, 12), 0.25, np.float32), spec, 8, image)
     np.testing.assert_allclose(flat, 4.0, rtol=1e-6)
+    # a thin bright pole on a dark wall, between grid samples: no sample shares its colour,
+    # yet every pixel of it still gets a depth (the colour weights are tiny, never zero)
+    pole = np.full((64, 96, 3), 0.1, np.float32)
+    pole[:, 41:43] = 0.9
+    thin = upsample_inverse_depth_guided(np.full((8, 12), 0.25, np.float32), spec, 8, pole)
+    np.testing.assert_allclose(thin, 4.0, rtol=1e-5)
     holes = np.full((8, 12), 0.25, np.float32)
     holes[:, 6:] = 0.0  # right half unknown
     part = upsample_inverse_depth_guided(holes, spec, 8, image)
