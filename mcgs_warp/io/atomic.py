@@ -1,8 +1,9 @@
 """Atomic file output and image I/O.
 
 Every file a run writes goes to a temporary name beside its final one and is
-renamed into place (``os.replace``), so an interrupted run never leaves a
-truncated file under a final name. The file gets the mode a plain ``open()`` would
+renamed into place (``os.replace``, then the folder is fsynced), so an interrupted run
+or a power loss never leaves a truncated file under a final name, and a rename is on disk
+before whatever follows it (a checkpoint before the segments it replaced are deleted). The file gets the mode a plain ``open()`` would
 give it (``0o666`` less the umask), not the private ``0o600`` of a temporary file.
 """
 
@@ -30,6 +31,16 @@ def _umask() -> int:
     return mask
 
 
+def _fsync_dir(folder: Path) -> None:
+    """Flush a folder's entries (a rename into it) to disk; a no-op where folders cannot be opened."""
+    with contextlib.suppress(OSError, AttributeError):
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
 @contextlib.contextmanager
 def atomic_write(path, mode: str = "w", **kwargs):
     """Open a temporary file beside ``path``; rename it to ``path`` when the block succeeds."""
@@ -43,6 +54,7 @@ def atomic_write(path, mode: str = "w", **kwargs):
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+        _fsync_dir(path.parent)  # the rename itself reaches the disk before anything that relies on it
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)

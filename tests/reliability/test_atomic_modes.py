@@ -42,3 +42,22 @@ def test_umask_is_left_unchanged(tmp_path):
         assert os.umask(0o027) == 0o027
     finally:
         os.umask(old)
+
+
+def test_atomic_write_flushes_the_rename_to_disk(tmp_path, monkeypatch):
+    """After the rename the folder itself is fsynced, so a checkpoint is on disk before the
+    segments it replaced are deleted (a power loss cannot leave it pointing at nothing)."""
+    import os
+    import stat
+
+    synced = []
+    real = os.fsync
+
+    def spy(fd):
+        synced.append(stat.S_ISDIR(os.fstat(fd).st_mode))
+        return real(fd)
+
+    monkeypatch.setattr(os, "fsync", spy)
+    with atomic_write(tmp_path / "a.txt") as f:
+        f.write("x")
+    assert synced == [False, True]  # the file's data, then its folder
