@@ -434,7 +434,8 @@ class FactorGraph:
         self._active: dict = {}  # key -> None: the active edges, in insertion order
         self._corr: dict = {}  # key -> (targets [h,w,2], weights [h,w])
         self._leaving: dict = {}  # keyframe i -> {key: None}: edges with correspondences leaving i
-        self._saved: dict = {}  # key -> (segment, row): where a checkpoint store holds its current correspondences
+        self._saved: dict = {}  # key -> (segment, row): where the checkpoint store holds its current correspondences
+        self._store: Path | None = None  # the folder _saved refers to
 
     # ---- membership --------------------------------------------------------------------
     def __len__(self) -> int:
@@ -663,6 +664,8 @@ class FactorGraph:
             return out
         from ..io import atomic_write
 
+        if self._store != Path(store):  # another folder: it holds none of ours
+            self._saved, self._store = {}, Path(store)
         fresh = [k for k in corr if k not in self._saved]
         if fresh:
             seg = 1 + max((s for s, _ in self._saved.values()), default=-1)
@@ -712,7 +715,7 @@ class FactorGraph:
         self._corr, self._leaving, self._saved = {}, {}, {}
         if has.any():
             self.set_correspondences(e[has], t, w)
-        self._saved = saved
+        self._saved, self._store = saved, (Path(store) if saved else None)
 
 def _segments(store) -> list:
     """Segment numbers of the files ``seg_<n>.npz`` in ``store`` (none if it does not exist)."""

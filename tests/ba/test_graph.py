@@ -254,6 +254,11 @@ def test_checkpoint_segments_write_each_correspondence_once(loop_seq, tmp_path):
     assert g.prune_store(store) == 2 and sorted(p.name for p in store.iterdir()) == ["seg_000002.npz"]
     with pytest.raises(ValueError, match="segment"):
         G.FactorGraph(buf).load_state_arrays(arrays)  # the folder is needed
+    other = tmp_path / "elsewhere.corr"
+    moved = g.state_arrays(other)  # a new folder gets every current correspondence
+    k = G.FactorGraph(buf)
+    k.load_state_arrays(moved, other)
+    assert np.array_equal(k.correspondences()[1], g.correspondences()[1])
 
 
 def test_loop_edge_found_and_global_ba_closes_the_loop(loop_problem):
