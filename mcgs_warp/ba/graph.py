@@ -436,6 +436,7 @@ class FactorGraph:
         self._leaving: dict = {}  # keyframe i -> {key: None}: edges with correspondences leaving i
         self._saved: dict = {}  # key -> (segment, row): where the checkpoint store holds its current correspondences
         self._store: Path | None = None  # the folder _saved refers to
+        self._seg_rows: dict = {}  # segment -> rows written to it
 
     # ---- membership --------------------------------------------------------------------
     def __len__(self) -> int:
@@ -647,9 +648,10 @@ class FactorGraph:
         correspondences of the edges that have them, in order: inline as ``graph_targets``
         [M,h,w,2] / ``graph_weights`` [M,h,w] float32, or, with a ``store`` folder, as
         ``graph_segment`` / ``graph_row`` [M] int64 into segment files ``store/seg_<n>.npz``.
-        A segment is written once, holding only the correspondences that changed since the
-        last call (so a run's checkpoints write each edge about once, not every edge every
-        time); :meth:`prune_store` removes segments nothing refers to any more."""
+        A segment is written once, holding the correspondences that changed since the last
+        call (not every edge every time) and the live rows of segments that had fallen below
+        half live, so the folder stays within about twice the live data once
+        :meth:`prune_store` has removed the segments nothing refers to any more."""
         keys = list(self._kind)
         corr = [k for k in keys if k in self._corr]
         h, w = self.buf.h, self.buf.w
@@ -665,14 +667,20 @@ class FactorGraph:
         from ..io import atomic_write
 
         if self._store != Path(store):  # another folder: it holds none of ours
-            self._saved, self._store = {}, Path(store)
+            self._saved, self._store, self._seg_rows = {}, Path(store), {}
         fresh = [k for k in corr if k not in self._saved]
-        if fresh:
+        if fresh:  # also move the live rows of segments now less than half live (they get pruned)
+            live: dict = {}
+            for sg, _ in self._saved.values():
+                live[sg] = live.get(sg, 0) + 1
+            sparse = {sg for sg, n in self._seg_rows.items() if live.get(sg, 0) < 0.5 * n}
+            fresh += [k for k in corr if k in self._saved and self._saved[k][0] in sparse]
             seg = 1 + max((s for s, _ in self._saved.values()), default=-1)
             seg = max(seg, 1 + max(_segments(store), default=-1))
             with atomic_write(Path(store) / f"seg_{seg:06d}.npz", "wb") as f:
                 np.savez(f, targets=np.array([self._corr[k][0] for k in fresh], np.float32), weights=np.array([self._corr[k][1] for k in fresh], np.float32))
             self._saved.update({k: (seg, n) for n, k in enumerate(fresh)})
+            self._seg_rows[seg] = len(fresh)
         out["graph_segment"] = np.array([self._saved[k][0] for k in corr], np.int64)
         out["graph_row"] = np.array([self._saved[k][1] for k in corr], np.int64)
         return out
@@ -683,6 +691,8 @@ class FactorGraph:
         used = {s for s, _ in self._saved.values()}
         gone = [n for n in _segments(store) if n not in used]
         for n in gone:
+            self._seg_rows.pop(n, None)
+        for n in gone:
             (Path(store) / f"seg_{n:06d}.npz").unlink(missing_ok=True)
         return len(gone)
 
@@ -692,7 +702,7 @@ class FactorGraph:
         e = np.asarray(arrays["graph_edges"]).reshape(-1, 5)
         active = np.asarray(arrays["graph_active"], bool)
         has = np.asarray(arrays["graph_has_corr"], bool)
-        saved = {}
+        saved, seg_rows = {}, {}
         if "graph_segment" in arrays:
             if store is None:
                 raise ValueError("the checkpoint keeps its correspondences in segment files: pass their folder")
@@ -705,6 +715,7 @@ class FactorGraph:
                 with np.load(Path(store) / f"seg_{int(n):06d}.npz") as z:
                     sel = seg == n
                     t[sel], w[sel] = z["targets"][row[sel]], z["weights"][row[sel]]
+                    seg_rows[int(n)] = len(z["weights"])
             saved = {tuple(int(v) for v in r[:4]): (int(a), int(b)) for r, a, b in zip(e[has], seg, row)}
         else:
             t, w = np.asarray(arrays["graph_targets"]), np.asarray(arrays["graph_weights"])
@@ -716,6 +727,7 @@ class FactorGraph:
         if has.any():
             self.set_correspondences(e[has], t, w)
         self._saved, self._store = saved, (Path(store) if saved else None)
+        self._seg_rows = seg_rows
 
 def _segments(store) -> list:
     """Segment numbers of the files ``seg_<n>.npz`` in ``store`` (none if it does not exist)."""

@@ -254,6 +254,20 @@ def test_checkpoint_segments_write_each_correspondence_once(loop_seq, tmp_path):
     assert g.prune_store(store) == 2 and sorted(p.name for p in store.iterdir()) == ["seg_000002.npz"]
     with pytest.raises(ValueError, match="segment"):
         G.FactorGraph(buf).load_state_arrays(arrays)  # the folder is needed
+    # a segment that falls below half live is compacted: its live rows move to the new one
+    dense = tmp_path / "dense.corr"
+    d = G.FactorGraph(buf)
+    four = [(0, 0, 1, 0), (1, 0, 0, 0), (1, 1, 2, 1), (2, 1, 1, 1)]
+    d.add(four)
+    d.compute(rec)
+    d.state_arrays(dense)
+    d.compute(rec, four[:3])  # three of four re-matched: segment 0 keeps one live row of four
+    moved = d.state_arrays(dense)
+    assert d.prune_store(dense) == 1 and sorted(p.name for p in dense.iterdir()) == ["seg_000001.npz"]
+    e = G.FactorGraph(buf)
+    e.load_state_arrays(moved, dense)
+    for a, b in zip(e.correspondences(four), d.correspondences(four)):
+        assert np.array_equal(a, b)
     other = tmp_path / "elsewhere.corr"
     moved = g.state_arrays(other)  # a new folder gets every current correspondence
     k = G.FactorGraph(buf)
