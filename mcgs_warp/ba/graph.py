@@ -675,8 +675,7 @@ class FactorGraph:
                 live[sg] = live.get(sg, 0) + 1
             sparse = {sg for sg, n in self._seg_rows.items() if live.get(sg, 0) < 0.5 * n}
             fresh += [k for k in corr if k in self._saved and self._saved[k][0] in sparse]
-            seg = 1 + max((s for s, _ in self._saved.values()), default=-1)
-            seg = max(seg, 1 + max(_segments(store), default=-1))
+            seg = 1 + max(_segments(store), default=-1)  # above every file there (ours among them)
             with atomic_write(Path(store) / f"seg_{seg:06d}.npz", "wb") as f:
                 np.savez(f, targets=np.array([self._corr[k][0] for k in fresh], np.float32), weights=np.array([self._corr[k][1] for k in fresh], np.float32))
             self._saved.update({k: (seg, n) for n, k in enumerate(fresh)})
@@ -692,7 +691,6 @@ class FactorGraph:
         gone = [n for n in _segments(store) if n not in used]
         for n in gone:
             self._seg_rows.pop(n, None)
-        for n in gone:
             (Path(store) / f"seg_{n:06d}.npz").unlink(missing_ok=True)
         return len(gone)
 
@@ -723,7 +721,7 @@ class FactorGraph:
             raise ValueError("inconsistent factor-graph arrays in the checkpoint")
         self._kind = {tuple(int(v) for v in row[:4]): int(row[4]) for row in e}
         self._active = {tuple(int(v) for v in row[:4]): None for row, a in zip(e, active) if a}
-        self._corr, self._leaving, self._saved = {}, {}, {}
+        self._corr, self._leaving, self._saved = {}, {}, {}  # set_correspondences fills the first two
         if has.any():
             self.set_correspondences(e[has], t, w)
         self._saved, self._store = saved, (Path(store) if saved else None)

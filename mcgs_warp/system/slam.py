@@ -92,7 +92,7 @@ class SLAM:
         self.prior = choose_prior(sequence, tc.depth, lambda: self.stereo if self.stereo.pairs else None)
         # Cross-view edges (eq. 8) constrain only depth; exact sensor depth already fixes it,
         # so with it they cost their sweeps and change nothing (demo: 4.3 vs 4.5 mm SE(3) ATE).
-        self.overlap = rig_overlap if tc.cross_view and not (self.prior.metric and self.prior.exact) else None
+        self.overlap = rig_overlap if tc.cross_view and not self.exact_depth else None
         self.oracle = SequenceGroundTruthFlow(sequence) if tc.correspondences == "ground-truth" else None
         self.stereo_matches = StereoMatches(self.stereo)
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
@@ -103,10 +103,17 @@ class SLAM:
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
 
     @property
+    def exact_depth(self) -> bool:
+        """Whether the run has exact sensor depth. It is used as is: MCBA's prior, the
+        mapping target and the Gaussian seed from the first keyframe on; no JDSA (rescaling
+        it to MCBA's depth would free the metric scale) and no cross-view edges (they
+        measure only depth)."""
+        return self.prior.metric and self.prior.exact
+
+    @property
     def jdsa_active(self) -> bool:
-        """JDSA runs for metric but inexact priors (stereo, monocular-style); exact sensor
-        depth is used as is (rescaling it to MCBA's depth would free the metric scale)."""
-        return self.cfg.tracking.jdsa and self.prior.metric and not self.prior.exact
+        """JDSA runs for metric but inexact priors (stereo, monocular-style)."""
+        return self.cfg.tracking.jdsa and self.prior.metric and not self.exact_depth
 
     # ----------------------------------------------------------------------------------
     def measure(self, refresh=(), guided_new: bool = False) -> None:
@@ -154,7 +161,7 @@ class SLAM:
         they were seen from (ratio of new to old grid depth at their pixel, 3x3 median), so a
         keyframe whose far depth improves takes its Gaussians along; its depth targets become
         the new estimate. Exact sensor depth is its own target: nothing follows."""
-        if self.prior.metric and self.prior.exact:
+        if self.exact_depth:
             return
         mapped = [k for k in keyframes if k in self.mapper.depths]
         if not mapped:
@@ -216,7 +223,7 @@ class SLAM:
         targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
         import cv2
 
-        if self.prior.metric and self.prior.exact:
+        if self.exact_depth:
             return list(frame.depths)
         buf, s = self.buf, self.buf.stride
         disp = buf.disp.numpy()[k] if disp is None else disp
@@ -249,8 +256,8 @@ class SLAM:
     # ----------------------------------------------------------------------------------
     def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
         """Write the whole online state atomically (``path``: a .npz file; the factor graph's
-        correspondences go to segment files beside it, :func:`correspondence_store`, each
-        written once)."""
+        correspondences go to segment files beside it, :func:`correspondence_store`, written
+        when they change)."""
         import json
 
         from ..io import atomic_write
@@ -268,7 +275,7 @@ class SLAM:
             kf_frames=np.array(kf_frames, dtype=np.int64),
             **self.graph.state_arrays(correspondence_store(path)),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
-            **{f"targets_cam{c}": np.array([self.mapper.depths[k][c] for k in sorted(self._mapped_depth)] if self._deferred_first() else [], dtype=np.float32) for c in range(len(self.seq.rig))},
+            **{f"targets_cam{c}": np.array([self.mapper.depths[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
             meta=np.array(json.dumps({"next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
         )
@@ -305,7 +312,7 @@ class SLAM:
         except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
             raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
         self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
-        if self._deferred_first():  # estimated targets: restore them as they were
+        if not self.exact_depth:  # estimated targets: restore them as they were
             depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
         else:
             depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
@@ -340,7 +347,7 @@ class SLAM:
             t1 = time.perf_counter()
             # Bootstrap: without exact depth, keyframe 0 waits for the MCBA of keyframe 1,
             # so that no Gaussian is seeded from the constant start depth.
-            for m in ([0, k] if k == 1 and self._deferred_first() else [] if k == 0 and self._deferred_first() else [k]):
+            for m in ([0, k] if k == 1 and not self.exact_depth else [] if k == 0 and not self.exact_depth else [k]):
                 self.mapper.add_keyframe(m, self.mapping_depths(self.seq[self.buf.frame_index[m]], m))
                 self._mapped_depth[m] = self.buf.depth(m)
             window = sliding_window(len(self.buf), self.cfg.tracking.window)
@@ -361,9 +368,6 @@ class SLAM:
         curve = [(i, r.loss, r.psnr) for i, r in enumerate(self.mapper.history)]
         return RunResult(traj, kf_frames, curve, dict(self.seconds))
 
-    def _deferred_first(self) -> bool:
-        return not (self.prior.metric and self.prior.exact)
-
     def refine(self) -> None:
         rc = self.cfg.refinement
         t0 = time.perf_counter()
@@ -382,7 +386,7 @@ class SLAM:
             self.loops = self.graph.close_loops(self.oracle or self.guided)
             saved = self.mcba.cfg.iterations, self.mcba.cfg.prior_weight
             self.mcba.cfg.iterations = rc.global_ba_iterations
-            if not self.prior.exact:
+            if not self.exact_depth:
                 # the long edges measure what the online window could not; an inexact prior,
                 # JDSA-scaled to the online estimate, would only hold that estimate in place
                 self.mcba.cfg.prior_weight = 0.0

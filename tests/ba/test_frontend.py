@@ -201,12 +201,24 @@ def test_guided_upsampling_keeps_depth_edges_where_the_image_has_them():
 
 def test_buffer_full_rays_are_each_cameras_pixel_rays(synthetic_seq):
     """One [C,H,W] ray array (the mapping loss's and the guided flow's) equals each camera's
-    own unit-depth rays, also through the [c][:h,:w] view the guided flow takes."""
+    own unit-depth rays, also through the [c][:h,:w] view the guided flow takes; for pinhole
+    cameras OpenCV projects each ray back onto its pixel."""
     from mcgs_warp.buffer import KeyframeBuffer
     from mcgs_warp.kernels.stereo import camera_rays
 
     buf = KeyframeBuffer(synthetic_seq.rig, stride=8, capacity=2)
     assert buf.full_rays is buf.full_rays  # made once
+    checked = False
     for c, spec in enumerate(synthetic_seq.rig.cameras):
         own = camera_rays(spec.warp_camera(), buf.device).numpy()
         np.testing.assert_array_equal(buf.full_rays[c][: spec.height, : spec.width].numpy(), own)
+        if spec.model == "pinhole":  # OpenCV projects each ray back onto its pixel
+            import cv2
+
+            fx, fy, cx, cy = spec.intrinsics
+            K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+            uv, _ = cv2.projectPoints(own.reshape(-1, 3).astype(np.float64), np.zeros(3), np.zeros(3), K, np.array(spec.distortion, np.float64))
+            v, u = np.mgrid[0 : spec.height, 0 : spec.width]
+            np.testing.assert_allclose(uv.reshape(spec.height, spec.width, 2), np.stack([u, v], -1), atol=1e-2)
+            checked = True
+    assert checked, "the synthetic rig has a pinhole camera"
