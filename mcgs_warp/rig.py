@@ -28,6 +28,8 @@ import numpy as np
 from .errors import InputError
 from .geometry import matrix_to_quat, pose, rotation_error
 
+_WARP_CAMERAS: dict = {}  # CameraSpec.warp_camera: parameters -> Camera struct
+
 MODELS = ("pinhole", "fisheye", "equirectangular")
 MAX_DISTORTION = {"pinhole": 5, "fisheye": 4, "equirectangular": 0}
 CAMERA_FIELDS = {"name", "model", "resolution", "intrinsics", "distortion", "T_b_c", "time_offset"}
@@ -47,10 +49,15 @@ class CameraSpec:
     time_offset: float = 0.0  # s
 
     def warp_camera(self):
-        """The :class:`mcgs_warp.kernels.Camera` struct of this camera."""
+        """The :class:`mcgs_warp.kernels.Camera` struct of this camera (made once per set of
+        parameters: making one searches the distortion's valid radius; treat it as read-only)."""
         from .kernels import make_camera
 
-        return make_camera(self.model, self.width, self.height, self.intrinsics, self.distortion)
+        key = (self.model, int(self.width), int(self.height), tuple(float(v) for v in np.ravel(self.intrinsics)) if self.intrinsics is not None else None, tuple(float(v) for v in self.distortion or ()))
+        cam = _WARP_CAMERAS.get(key)
+        if cam is None:
+            cam = _WARP_CAMERAS[key] = make_camera(self.model, self.width, self.height, self.intrinsics, self.distortion)
+        return cam
 
 
 @dataclass

@@ -592,10 +592,19 @@ class FactorGraph:
     def refresh(self, provider, keyframes, kinds=(TEMPORAL, CROSS_TIME, LOOP)) -> np.ndarray:
         """Recompute with ``provider`` (e.g. :class:`GuidedDIS`, from the current geometry) the
         correspondences of the active edges of ``kinds`` touching ``keyframes``; cross-view
-        edges are left alone by default (their rig geometry does not change). Returns them [R,5]."""
+        edges are left alone by default (their rig geometry does not change), and so are edges
+        the provider calls settled (``provider.settled(buffer, edges, targets, weights)``, if it
+        has one: the current geometry already predicts their matches). Returns the edges
+        recomputed [R,5]."""
         ks = {int(k) for k in keyframes}
         kinds = set(kinds)
         keys = [k for k in self._active if (k[0] in ks or k[2] in ks) and self._kind[k] in kinds]
+        if keys and hasattr(provider, "settled"):  # edges the geometry already explains keep their matches
+            known = [k for k in keys if k in self._corr]
+            if known:
+                t, w = self.correspondences(self._rows(known))
+                settled = {k for k, done in zip(known, provider.settled(self.buf, self._rows(known), t, w)) if done}
+                keys = [k for k in keys if k not in settled]
         return self.compute(provider, self._rows(keys)) if keys else np.zeros((0, 5), np.int32)
 
     def items(self):

@@ -48,6 +48,12 @@ class DISFlow(FlowProvider):
 
     def flow(self, image_a: np.ndarray, image_b: np.ndarray):
         """Dense flow [H,W,2] from a to b (px) and its confidence [H,W] in [0,1]."""
+        return self.flows(image_a, image_b)[0]
+
+    def flows(self, image_a: np.ndarray, image_b: np.ndarray):
+        """Both directions from the same two DIS runs: ``((flow a->b [Ha,Wa,2], confidence
+        [Ha,Wa]), (flow b->a [Hb,Wb,2], confidence [Hb,Wb]))``; the second equals
+        ``flow(image_b, image_a)``."""
         import cv2
 
         a, b = self._grey(image_a), self._grey(image_b)
@@ -59,27 +65,48 @@ class DISFlow(FlowProvider):
         bwd = self.dis.calc(b, a, None)
         H, W = a.shape
         v, u = np.mgrid[0:H, 0:W].astype(np.float32)
-        back = cv2.remap(bwd, u + fwd[..., 0], v + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1e4)
-        err = np.linalg.norm(fwd + back, axis=-1)
-        h0, w0 = image_a.shape[:2]
-        return fwd[:h0, :w0], np.exp(-((err[:h0, :w0] / self.sigma) ** 2))
+
+        def checked(f, g, shape):
+            back = cv2.remap(g, u + f[..., 0], v + f[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1e4)
+            err = np.linalg.norm(f + back, axis=-1)
+            h0, w0 = shape[:2]
+            return f[:h0, :w0], np.exp(-((err[:h0, :w0] / self.sigma) ** 2))
+
+        return checked(fwd, bwd, image_a.shape), checked(bwd, fwd, image_b.shape)
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
-        E, s = len(edges), buffer.stride
+        E = len(edges)
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
-        for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
-            flow, conf = self.flow(buffer.images[i][ci], buffer.images[j][cj])
-            spec = buffer.rig.cameras[ci]
-            uv = grid_pixels(spec, s)
-            ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
-            h, w = uv.shape[:2]
-            t = uv + flow[vi, ui]  # full-resolution pixel in view (j, cj)
-            targets[e, :h, :w] = to_reduced(t, s)
-            cam_j = buffer.rig.cameras[cj]
-            inside = (t[..., 0] >= 0) & (t[..., 0] <= cam_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= cam_j.height - 1)
-            weights[e, :h, :w] = conf[vi, ui] * inside
+        reverse: dict = {}  # edge -> its grid targets, from its reverse's two DIS runs
+        wanted = {tuple(e) for e in edges[:, :4].tolist()}
+        for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):
+            if (i, ci, j, cj) in reverse:
+                targets[e], weights[e] = reverse.pop((i, ci, j, cj))
+                continue
+            forward, back = self.flows(buffer.images[i][ci], buffer.images[j][cj])
+            targets[e], weights[e] = grid_targets(buffer, ci, cj, *forward)
+            if (j, cj, i, ci) in wanted:
+                reverse[(j, cj, i, ci)] = grid_targets(buffer, cj, ci, *back)
         return targets, weights
+
+
+def grid_targets(buffer: KeyframeBuffer, ci: int, cj: int, flow: np.ndarray, conf: np.ndarray):
+    """A dense flow [H,W,2] (px) of view ci towards view cj and its confidence [H,W],
+    sampled at the reduced-grid pixels of ci: targets [h,w,2] in reduced-grid pixels of cj
+    and weights [h,w] (0 where the target leaves view cj), padded to the buffer's grid."""
+    s = buffer.stride
+    uv = grid_pixels(buffer.rig.cameras[ci], s)
+    ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
+    h, w = uv.shape[:2]
+    t = uv + flow[vi, ui]  # full-resolution pixel in view cj
+    cam_j = buffer.rig.cameras[cj]
+    inside = (t[..., 0] >= 0) & (t[..., 0] <= cam_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= cam_j.height - 1)
+    targets = np.zeros((buffer.h, buffer.w, 2), np.float32)
+    weights = np.zeros((buffer.h, buffer.w), np.float32)
+    targets[:h, :w] = to_reduced(t, s)
+    weights[:h, :w] = conf[vi, ui] * inside
+    return targets, weights
 
 
 def project_grid_depth(buffer: KeyframeBuffer, ci: int, z: np.ndarray, T_cj_ci: np.ndarray, cj: int):
@@ -213,8 +240,32 @@ class GuidedDIS(FlowProvider):
     rotations and different camera models reduce to a small residual. Confidence: the
     residual's forward-backward consistency, zero where the prediction leaves view j."""
 
-    def __init__(self, dis: DISFlow):
+    def __init__(self, dis: DISFlow, settled_px: float = 0.25, settled_outliers: float = 0.05):
         self.dis = dis
+        self.settled_px = settled_px  # full-resolution px (see settled)
+        self.settled_outliers = settled_outliers
+
+    def settled(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """bool [E]: edges whose current geometry already predicts their stored matches
+        (``targets`` [E,h,w,2], ``weights`` [E,h,w]): over confident grid pixels (weight >
+        0.5) the median distance is below ``settled_px`` and at most ``settled_outliers`` of
+        them are more than 1 px off. Re-matching such an edge changes almost nothing (on the
+        built-in sequence: median 0.05 px), so :meth:`FactorGraph.refresh` skips it."""
+        from ..kernels.stereo import reproject
+
+        s, rig, poses, disp = buffer.stride, buffer.rig, buffer.get_poses(), buffer.disp.numpy()
+        out = np.zeros(len(edges), bool)
+        for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):
+            spec_i, spec_j = rig.cameras[ci], rig.cameras[cj]
+            hr, wr = spec_i.height // s, spec_i.width // s
+            T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
+            pred = reproject(buffer.rays[int(ci)][:hr, :wr], disp[i, ci, :hr, :wr], T, spec_j.warp_camera(), buffer.device)
+            ok = (weights[e, :hr, :wr] > 0.5) & np.isfinite(pred).all(-1)
+            if ok.sum() < 16:
+                continue
+            err = np.linalg.norm(pred - (targets[e, :hr, :wr] * s + s // 2), axis=-1)[ok]
+            out[e] = np.median(err) < self.settled_px and (err > 1.0).mean() <= self.settled_outliers
+        return out
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
         import cv2

@@ -119,9 +119,11 @@ class SLAM:
     def measure(self, refresh=(), guided_new: bool = False) -> None:
         """Correspondences for the graph's active edges that have none: cross-view edges from
         the rig's sweep stereo, the others from DIS; edges touching a keyframe in ``refresh``
-        are re-estimated from the current reprojection (:class:`GuidedDIS`); ``guided_new``
+        are re-estimated from the current reprojection (:class:`GuidedDIS`) unless the current
+        geometry already predicts their matches (:meth:`GuidedDIS.settled`); ``guided_new``
         computes new non-cross-view edges that way from the start (global BA's long edges:
-        their keyframes are already solved, their motion too large for raw DIS). With
+        their keyframes are already solved, their motion too large for raw DIS), and so does
+        exact sensor depth (its prediction is good from the first solve on). With
         ``--correspondences ground-truth`` every edge is exact (oracle)."""
         g = self.graph
         if self.oracle is None and refresh:
@@ -136,7 +138,9 @@ class SLAM:
         if cross.any():
             g.compute(self.stereo_matches, missing[cross])
         if (~cross).any():
-            g.compute(self.guided if guided_new else self.flow, missing[~cross])
+            # with exact depth the constant-velocity start already predicts the flow well: match
+            # around it from the start (the re-matching round then finds these edges settled)
+            g.compute(self.guided if guided_new or self.exact_depth else self.flow, missing[~cross])
 
     def _solve(self, keyframes, fresh=(), guided_new: bool = False):
         """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``

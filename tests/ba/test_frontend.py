@@ -25,6 +25,28 @@ def test_dis_correspondences_agree_with_ground_truth(synthetic_seq):
     assert np.mean(err[confident]) < np.mean(err[both])  # the confidence singles out bad flow
 
 
+def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
+    """An edge and its reverse come from the same two DIS runs and equal what each edge
+    alone gives (flow(a, b) and flow(b, a)); the reverse's confidence is its own check."""
+    from mcgs_warp.frontend.flow import grid_targets
+
+    P = Problem(synthetic_seq, [0, 1], cross_view=False, radius=1)
+    temporal = P.edges[P.edges[:, 4] == TEMPORAL]
+    pairs = [e for e in temporal.tolist() if [e[2], e[3], e[0], e[1], e[4]] in temporal.tolist()]
+    assert len(pairs) >= 2
+    dis = DISFlow()
+    calls = []
+    real = dis.dis.calc
+    dis.dis = type("Counting", (), {"calc": lambda self, a, b, f: calls.append(1) or real(a, b, f)})()
+    t, w = dis.correspondences(P.buf, np.array(pairs, np.int32))
+    assert len(calls) == len(pairs)  # two DIS runs per edge pair, not per edge
+    for e, (i, ci, j, cj, _kind) in enumerate(pairs):
+        alone = grid_targets(P.buf, ci, cj, *DISFlow().flow(P.buf.images[i][ci], P.buf.images[j][cj]))
+        np.testing.assert_allclose(t[e], alone[0], atol=1e-5)
+        np.testing.assert_allclose(w[e], alone[1], atol=1e-5)
+    assert not np.allclose(w[0], w[1])  # each direction's own forward-backward check
+
+
 def test_keyframe_selector_measures_motion(synthetic_seq):
     sel = KeyframeSelector(DISFlow(preset="fast"), threshold=8.0)
     f0, f1, f4 = synthetic_seq[0], synthetic_seq[1], synthetic_seq[4]

@@ -357,3 +357,40 @@ def test_a_keyframe_without_overlapping_views_is_still_linked(synthetic_seq):
     assert len(slam.graph.edges) == 2 * C
     # asking which edges lack correspondences does not add unknown edges
     assert len(slam.graph.missing([(5, 0, 6, 0)])) == 1 and (5, 0, 6, 0) not in {tuple(int(v) for v in e[:4]) for e in slam.graph.stored}
+
+
+def test_refresh_skips_edges_the_geometry_already_explains(loop_seq):
+    """GuidedDIS.settled: with the true geometry and exact matches every edge is settled and
+    refresh re-matches nothing; after keyframe 2 moves by 2 cm its edges are re-matched (and
+    only those); a settled edge whose stored matches are off by 2 px is re-matched too."""
+    from mcgs_warp.frontend.flow import GroundTruthFlow
+
+    frames = [0, 1, 2, 3]
+    buf = make_buffer(loop_seq, frames)
+    g = G.FactorGraph(buf, None)
+    e = np.array([(0, 0, 1, 0), (1, 0, 0, 0), (1, 0, 2, 0), (2, 0, 1, 0), (2, 0, 3, 0), (3, 0, 2, 0), (0, 1, 1, 1), (1, 1, 0, 1)], np.int32)
+    g.add(e)
+    gt = GroundTruthFlow([loop_seq[k].depths for k in frames], buf.get_poses())
+    g.compute(gt)
+    guided = GuidedDIS(DISFlow())
+    _, t, w = g.arrays()
+    assert guided.settled(buf, g.arrays()[0], t, w).all()
+
+    class Counting(GuidedDIS):
+        calls: list = []
+
+        def correspondences(self, buffer, edges):
+            Counting.calls += [tuple(int(v) for v in r[:4]) for r in edges]
+            return gt.correspondences(buffer, edges)
+
+    prov = Counting(DISFlow())
+    assert len(g.refresh(prov, [0, 1, 2, 3])) == 0 and not Counting.calls
+    T = buf.get_poses()
+    T[2] = T[2] @ se3_exp(np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    buf.set_poses(T)
+    redo = {tuple(r[:4]) for r in g.refresh(prov, [0, 1, 2, 3])}
+    assert redo == {(1, 0, 2, 0), (2, 0, 1, 0), (2, 0, 3, 0), (3, 0, 2, 0)} == set(Counting.calls)
+    buf.set_poses(gt.T_w_b)
+    t, w = g.correspondences([(0, 1, 1, 1)])
+    g.set_correspondences(np.array([(0, 1, 1, 1, G.TEMPORAL)], np.int32), t + 2.0 / STRIDE, w)
+    assert {tuple(r[:4]) for r in g.refresh(prov, [0])} == {(0, 1, 1, 1)}
