@@ -33,7 +33,7 @@ import numpy as np
 from ..rig import CameraSpec, Rig
 
 
-KEEP = 16  # frames whose full-resolution stereo depth stays cached (more than a window)
+KEEP = 64  # frames whose stereo depth stays cached, at sweep resolution (global BA asks for every keyframe's)
 
 
 def scaled_spec(spec: CameraSpec, factor: int) -> CameraSpec:
@@ -141,22 +141,17 @@ class RigStereo:
 
     def depth(self, key, images) -> tuple[list, list]:
         """Per camera: depth [H,W] (m, 0 = none) and confidence [H,W] at full resolution,
-        the most confident pair per pixel. The last ``KEEP`` frames' results are kept (the
-        mapper asks again for every keyframe of the window after each solve)."""
-        if key in self._depths:
-            return self._depths[key]
-        depths, confs = [], []
-        for c, spec in enumerate(self.rig.cameras):
-            d, conf, _rate = self._rig_view(key, images, c)
-            depths.append(upsample_nearest(d, spec, self.cfg.scale))
-            confs.append(upsample_nearest(conf, spec, self.cfg.scale))
-        self._remember(key, (depths, confs))
-        return depths, confs
-
-    def _remember(self, key, value) -> None:
-        self._depths[key] = value
-        while len(self._depths) > KEEP:
-            self._depths.popitem(last=False)
+        the most confident pair per pixel. The last ``KEEP`` frames' results are kept at
+        sweep resolution (the mapper asks again for every keyframe of the window after each
+        solve, and for every keyframe after global BA)."""
+        if key not in self._depths:
+            self._depths[key] = [self._rig_view(key, images, c)[:2] for c in range(len(self.rig))]
+            while len(self._depths) > KEEP:
+                self._depths.popitem(last=False)
+        self._depths.move_to_end(key)
+        views = self._depths[key]
+        f = self.cfg.scale
+        return [upsample_nearest(d, spec, f) for (d, _), spec in zip(views, self.rig.cameras)], [upsample_nearest(c, spec, f) for (_, c), spec in zip(views, self.rig.cameras)]
 
     def _rig_view(self, key, images, c: int):
         """Sweep-resolution depth, confidence and parallax rate [h,w] of camera ``c`` from

@@ -65,6 +65,34 @@ def test_depth_priors(synthetic_seq):
     assert np.all(grid_depth(NoDepth()(f, rig), rig, 8, (30, 40)) == 0)
 
 
+def test_stereo_depth_is_kept_per_frame(synthetic_seq, monkeypatch):
+    """RigStereo.depth keeps the last KEEP frames' results (at sweep resolution): asking again
+    for every earlier keyframe, as the mapper does after global BA, sweeps nothing again and
+    gives what a fresh RigStereo gives."""
+    from mcgs_warp.frontend import stereo as S
+
+    rig = synthetic_seq.rig
+    st = S.RigStereo(rig, camera_overlap(rig, stride=8))
+    monkeypatch.setattr(S, "KEEP", 3)
+    sweeps = []
+    real = st.pair_sweeps
+    st.pair_sweeps = lambda key, images: sweeps.append(key) or real(key, images)
+    frames = [synthetic_seq[k] for k in range(4)]
+    for f in frames:
+        st.depth(f.index, f.images)
+    C = len(rig)
+    assert len(sweeps) == 4 * C  # one request per camera and frame
+    d1, c1 = st.depth(frames[1].index, frames[1].images)  # kept: no sweep
+    assert len(sweeps) == 4 * C
+    st.depth(frames[0].index, frames[0].images)  # evicted (KEEP 3): swept again
+    assert len(sweeps) == 5 * C
+    fresh_d, fresh_c = S.RigStereo(rig, camera_overlap(rig, stride=8)).depth(frames[1].index, frames[1].images)
+    for a, b, ca, cb, spec in zip(d1, fresh_d, c1, fresh_c, rig.cameras):
+        assert a.shape == (spec.height, spec.width) and (a > 0).mean() > 0.1
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(ca, cb)
+
+
 def test_depth_source_choice(synthetic_seq, tmp_path):
     """auto = sensor depth when every camera has it (exact or, per metadata.yaml, an
     inexact prior), else stereo when cameras overlap, else none; impossible choices and
