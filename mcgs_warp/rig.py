@@ -53,7 +53,7 @@ class CameraSpec:
         parameters: making one searches the distortion's valid radius; treat it as read-only)."""
         from .kernels import make_camera
 
-        key = (self.model, int(self.width), int(self.height), tuple(float(v) for v in np.ravel(self.intrinsics)) if self.intrinsics is not None else None, tuple(float(v) for v in self.distortion or ()))
+        key = (self.model, int(self.width), int(self.height), tuple(float(v) for v in np.ravel(self.intrinsics)) if self.intrinsics is not None else None, tuple(float(v) for v in (() if self.distortion is None else self.distortion)))
         cam = _WARP_CAMERAS.get(key)
         if cam is None:
             cam = _WARP_CAMERAS[key] = make_camera(self.model, self.width, self.height, self.intrinsics, self.distortion)

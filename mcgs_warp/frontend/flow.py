@@ -48,12 +48,12 @@ class DISFlow(FlowProvider):
 
     def flow(self, image_a: np.ndarray, image_b: np.ndarray):
         """Dense flow [H,W,2] from a to b (px) and its confidence [H,W] in [0,1]."""
-        return self.flows(image_a, image_b)[0]
+        return self.flows(image_a, image_b, both=False)[0]
 
-    def flows(self, image_a: np.ndarray, image_b: np.ndarray):
+    def flows(self, image_a: np.ndarray, image_b: np.ndarray, both: bool = True):
         """Both directions from the same two DIS runs: ``((flow a->b [Ha,Wa,2], confidence
         [Ha,Wa]), (flow b->a [Hb,Wb,2], confidence [Hb,Wb]))``; the second equals
-        ``flow(image_b, image_a)``."""
+        ``flow(image_b, image_a)`` (``None`` unless ``both``)."""
         import cv2
 
         a, b = self._grey(image_a), self._grey(image_b)
@@ -72,7 +72,7 @@ class DISFlow(FlowProvider):
             h0, w0 = shape[:2]
             return f[:h0, :w0], np.exp(-((err[:h0, :w0] / self.sigma) ** 2))
 
-        return checked(fwd, bwd, image_a.shape), checked(bwd, fwd, image_b.shape)
+        return checked(fwd, bwd, image_a.shape), (checked(bwd, fwd, image_b.shape) if both else None)
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
         E = len(edges)
@@ -229,6 +229,25 @@ class StereoMatches(FlowProvider):
             p, inside, _ = project_grid_depth(buffer, ci, z, T, cj)
             targets[e, :h, :w] = to_reduced(p, s).reshape(h, w, 2)
             weights[e, :h, :w] = (conf.reshape(-1) * inside).reshape(h, w)
+        return targets, weights
+
+
+class GuidedOrRaw(FlowProvider):
+    """New edges matched around the predicted flow (``guided``), except where the prediction
+    is too poor to guide (a bad constant-velocity start: too little of view i lands in view j
+    with a confident match): those edges are matched by plain DIS (``raw``) instead."""
+
+    def __init__(self, guided: "GuidedDIS", raw: DISFlow, min_confident: float = 0.25):
+        self.guided, self.raw = guided, raw
+        self.min_confident = min_confident  # fraction of the view's grid pixels
+
+    def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
+        targets, weights = self.guided.correspondences(buffer, edges)
+        s = buffer.stride
+        area = np.array([(buffer.rig.cameras[ci].height // s) * (buffer.rig.cameras[ci].width // s) for ci in edges[:, 1]], np.float64)
+        poor = (weights > 0.5).sum(axis=(1, 2)) < self.min_confident * area
+        if poor.any():
+            targets[poor], weights[poor] = self.raw.correspondences(buffer, edges[poor])
         return targets, weights
 
 

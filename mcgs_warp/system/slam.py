@@ -29,7 +29,7 @@ from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
 from ..data.trajectory import Trajectory
 from ..frontend.depth import choose_prior, grid_depth, upsample_inverse_depth_guided
-from ..frontend.flow import DISFlow, GuidedDIS, SequenceGroundTruthFlow, StereoMatches
+from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, SequenceGroundTruthFlow, StereoMatches
 from ..frontend.stereo import RigStereo
 from ..frontend.keyframes import KeyframeSelector
 from ..geometry import matrix_to_quat, quat_to_matrix
@@ -86,6 +86,7 @@ class SLAM:
         self.buf = KeyframeBuffer(sequence.rig, stride=tc.stride, capacity=len(sequence) + 1, device=device)
         self.flow = DISFlow()
         self.guided = GuidedDIS(self.flow)
+        self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
         self.selector = KeyframeSelector(self.flow, threshold=tc.keyframe_flow_px)
         rig_overlap = camera_overlap(sequence.rig, stride=tc.stride)
         self.stereo = RigStereo(sequence.rig, rig_overlap, device=self.buf.device)
@@ -139,8 +140,9 @@ class SLAM:
             g.compute(self.stereo_matches, missing[cross])
         if (~cross).any():
             # with exact depth the constant-velocity start already predicts the flow well: match
-            # around it from the start (the re-matching round then finds these edges settled)
-            g.compute(self.guided if guided_new or self.exact_depth else self.flow, missing[~cross])
+            # around it from the start (the re-matching round then finds these edges settled),
+            # by plain DIS where the start is too poor to guide
+            g.compute(self.guided if guided_new else self.guided_or_raw if self.exact_depth else self.flow, missing[~cross])
 
     def _solve(self, keyframes, fresh=(), guided_new: bool = False):
         """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``
