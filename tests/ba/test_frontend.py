@@ -46,6 +46,19 @@ def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
         np.testing.assert_allclose(w[e], alone[1], atol=1e-5)
 
 
+def test_dis_reverse_of_different_sized_views(synthetic_seq):
+    """Views of different sizes (a rig mixing cameras): both directions from one pair of DIS
+    runs equal flow(a, b) and flow(b, a), each cropped to its own view."""
+    a = synthetic_seq[0].images[0]
+    b = np.ascontiguousarray(synthetic_seq[1].images[0][:200, :280])
+    dis = DISFlow()
+    (f_ab, c_ab), (f_ba, c_ba) = dis.flows(a, b)
+    assert f_ab.shape == a.shape[:2] + (2,) and f_ba.shape == b.shape[:2] + (2,)
+    for (f, c), (g, d) in (((f_ab, c_ab), dis.flow(a, b)), ((f_ba, c_ba), dis.flow(b, a))):
+        np.testing.assert_allclose(f, g, atol=1e-5)
+        np.testing.assert_allclose(c, d, atol=1e-5)
+
+
 def test_keyframe_selector_measures_motion(synthetic_seq):
     sel = KeyframeSelector(DISFlow(preset="fast"), threshold=8.0)
     f0, f1, f4 = synthetic_seq[0], synthetic_seq[1], synthetic_seq[4]
