@@ -394,3 +394,38 @@ def test_refresh_skips_edges_the_geometry_already_explains(loop_seq):
     t, w = g.correspondences([(0, 1, 1, 1)])
     g.set_correspondences(np.array([(0, 1, 1, 1, G.TEMPORAL)], np.int32), t + 2.0 / STRIDE, w)
     assert {tuple(r[:4]) for r in g.refresh(prov, [0])} == {(0, 1, 1, 1)}
+
+
+def test_settled_edges_on_a_rig_with_a_smaller_camera(loop_seq):
+    """GuidedDIS.settled on a rig whose second camera is smaller than the buffer's grid (its
+    images cropped to 264x184, the same intrinsics): exact matches at the true geometry are
+    settled, and moving a keyframe unsettles the edges of both cameras."""
+    import dataclasses
+
+    from mcgs_warp.frontend.flow import GroundTruthFlow
+    from mcgs_warp.rig import Rig
+
+    w, h = 264, 184
+    cams = list(loop_seq.rig.cameras)
+    cams[1] = dataclasses.replace(cams[1], width=w, height=h)
+    rig = Rig(cams)
+    frames = [0, 1]
+    buf = KeyframeBuffer(rig, stride=STRIDE, capacity=2)
+    depths = []
+    for k in frames:
+        f = loop_seq[k]
+        images = [f.images[0], np.ascontiguousarray(f.images[1][:h, :w]), f.images[2]]
+        d = [f.depths[0], np.ascontiguousarray(f.depths[1][:h, :w]), f.depths[2]]
+        grid = grid_depth(d, rig, STRIDE, (buf.h, buf.w))
+        buf.add(k, f.timestamp, images, loop_seq.groundtruth.poses[k], np.where(grid > 0, 1.0 / np.maximum(grid, 1e-6), 0.0))
+        depths.append(d)
+    assert (buf.h, buf.w) == (loop_seq.rig.cameras[0].height // STRIDE, loop_seq.rig.cameras[0].width // STRIDE)
+    edges = np.array([(0, 0, 1, 0, G.TEMPORAL), (1, 1, 0, 1, G.TEMPORAL), (0, 1, 1, 1, G.TEMPORAL)], np.int32)
+    t, wgt = GroundTruthFlow(depths, buf.get_poses()).correspondences(buf, edges)
+    assert (wgt[1:, h // STRIDE :, :] == 0).all() and (wgt[1:] > 0).sum() > 100
+    guided = GuidedDIS(DISFlow())
+    assert guided.settled(buf, edges, t, wgt).all()
+    T = buf.get_poses()
+    T[1] = T[1] @ se3_exp(np.array([0.03, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    buf.set_poses(T)
+    assert not guided.settled(buf, edges, t, wgt).any()
