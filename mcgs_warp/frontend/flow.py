@@ -109,13 +109,16 @@ def grid_targets(buffer: KeyframeBuffer, ci: int, cj: int, flow: np.ndarray, con
     return targets, weights
 
 
-def project_grid_depth(buffer: KeyframeBuffer, ci: int, z: np.ndarray, T_cj_ci: np.ndarray, cj: int):
+def project_grid_depth(buffer: KeyframeBuffer, ci: int, z: np.ndarray, T_cj_ci: np.ndarray, cj: int, rays=None):
     """Full-resolution pixels [h*w,2] of view cj seen at the reduced-grid pixels of view ci
-    with depth ``z`` [h,w] (m, 0 = none), and whether each lands inside view cj."""
+    with depth ``z`` [h,w] (m, 0 = none), and whether each lands inside view cj. ``rays``:
+    the buffer's grid rays on the host ([C,h,w,3], ``buffer.rays.numpy()``), read once by
+    callers that loop over edges."""
     from ..kernels import reference
 
     h, w = z.shape
-    X = buffer.rays.numpy()[ci, :h, :w].astype(np.float64) * z[..., None]
+    rays = buffer.rays.numpy() if rays is None else rays
+    X = rays[ci, :h, :w].astype(np.float64) * z[..., None]
     Xj = X.reshape(-1, 3) @ T_cj_ci[:3, :3].T + T_cj_ci[:3, 3]
     cam = buffer.rig.cameras[cj].warp_camera()
     ok = (z.reshape(-1) > 0) & reference.in_domain(cam, Xj)
@@ -149,13 +152,14 @@ class GroundTruthFlow(FlowProvider):
         E, s = len(edges), buffer.stride
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
+        rays = buffer.rays.numpy()
         for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
             spec_i = buffer.rig.cameras[ci]
             uv = grid_pixels(spec_i, s)
             h, w = uv.shape[:2]
             z = self.depths_of(buffer, i)[ci][uv[..., 1].astype(int), uv[..., 0].astype(int)].astype(np.float64)
             T = np.linalg.inv(self.pose_of(buffer, j) @ buffer.rig.cameras[cj].T_b_c) @ self.pose_of(buffer, i) @ spec_i.T_b_c
-            p, inside, Xj = project_grid_depth(buffer, ci, z, T, cj)
+            p, inside, Xj = project_grid_depth(buffer, ci, z, T, cj, rays)
             pr = np.round(np.where(inside[:, None], p, 0)).astype(int)
             seen = self.depths_of(buffer, j)[cj][pr[:, 1], pr[:, 0]]
             pred = reference.depth(buffer.rig.cameras[cj].warp_camera(), Xj)
@@ -214,7 +218,7 @@ class StereoMatches(FlowProvider):
         E, s = len(edges), buffer.stride
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
-        rig = buffer.rig
+        rig, rays = buffer.rig, buffer.rays.numpy()
         for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
             if i != j or (ci, cj) not in self.stereo.pairs:
                 continue
@@ -226,7 +230,7 @@ class StereoMatches(FlowProvider):
             z = upsample_nearest(res.depth(), spec, sc)[uv[..., 1], uv[..., 0]].astype(np.float64)
             conf = upsample_nearest(res.confidence.numpy(), spec, sc)[uv[..., 1], uv[..., 0]]
             T = np.linalg.inv(rig.cameras[cj].T_b_c) @ spec.T_b_c
-            p, inside, _ = project_grid_depth(buffer, ci, z, T, cj)
+            p, inside, _ = project_grid_depth(buffer, ci, z, T, cj, rays)
             targets[e, :h, :w] = to_reduced(p, s).reshape(h, w, 2)
             weights[e, :h, :w] = (conf.reshape(-1) * inside).reshape(h, w)
         return targets, weights
@@ -270,19 +274,18 @@ class GuidedDIS(FlowProvider):
         0.5) the median distance is below ``settled_px`` and at most ``settled_outliers`` of
         them are more than 1 px off. Re-matching such an edge changes almost nothing (on the
         built-in sequence: median 0.05 px), so :meth:`FactorGraph.refresh` skips it."""
-        from ..kernels.stereo import reproject
-
-        s, rig, poses, disp = buffer.stride, buffer.rig, buffer.get_poses(), buffer.disp.numpy()
+        s, rig, poses, disp, rays = buffer.stride, buffer.rig, buffer.get_poses(), buffer.disp.numpy(), buffer.rays.numpy()
         out = np.zeros(len(edges), bool)
         for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):
             spec_i, spec_j = rig.cameras[ci], rig.cameras[cj]
             hr, wr = spec_i.height // s, spec_i.width // s
             T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
-            pred = reproject(buffer.rays[int(ci)][:hr, :wr], disp[i, ci, :hr, :wr], T, spec_j.warp_camera(), buffer.device)
-            ok = (weights[e, :hr, :wr] > 0.5) & np.isfinite(pred).all(-1)
+            d = disp[i, ci, :hr, :wr]
+            pred, inside, _ = project_grid_depth(buffer, ci, np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0), T, cj, rays)
+            ok = (weights[e, :hr, :wr] > 0.5) & inside.reshape(hr, wr)
             if ok.sum() < 16:
                 continue
-            err = np.linalg.norm(pred - (targets[e, :hr, :wr] * s + s // 2), axis=-1)[ok]
+            err = np.linalg.norm(pred.reshape(hr, wr, 2) - (targets[e, :hr, :wr] * s + s // 2), axis=-1)[ok]
             out[e] = np.median(err) < self.settled_px and (err > 1.0).mean() <= self.settled_outliers
         return out
 
