@@ -18,8 +18,9 @@ def views_at(seq, frames):
 def test_fit_reaches_target_psnr(fitted, mapping_seq):
     train = fitted.evaluate(views_at(mapping_seq, KEYFRAMES))
     held = fitted.evaluate(views_at(mapping_seq, HELD_OUT))
-    # README ("Mapping"): about 30.5 dB on the training views and the same on held-out frames.
-    assert train >= 30.0, train
+    # README ("Mapping"): about 30.3 dB on the training views (30.0 on CUDA, whose atomic
+    # float32 gradient sums change Adam's path) and the same on held-out frames; 26.4 at the start.
+    assert train >= 29.8, train
     assert abs(held - train) < 0.5, (train, held)
     first = np.mean([r.psnr for r in fitted.history[:5]])
     assert fitted.history[-1].psnr > first + 2.0  # the optimizer does the work, not just the init
