@@ -231,7 +231,7 @@ def mcba_cost_kernel(
 #
 # The depth variable of pixel p of view (i, ci) couples to pose i through every edge e
 # leaving (i, ci) (``E_{e,i}(p)``, Epix[e, y, x, 0]) and to pose j_e (``E_{e,j}(p)``,
-# Epix[e, y, x, 1]). With ``Q_p = 1 / (C_p (1 + lambda) + 1e-9)`` (0 where C_p == 0) the
+# Epix[e, y, x, 1]). With ``Q_p = 1 / (C_p (1 + lambda) + lambda DEPTH_DAMPING)`` (0 where C_p == 0) the
 # reduced camera system ``S = B - sum_p G_p^T Q_p G_p`` needs, for every ordered pair of
 # pose edges (e1, e2) with the same source view, the four 6x6 blocks
 # ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for (a, b) in (i,i), (i,j2), (j1,i), (j1,j2)
@@ -244,11 +244,22 @@ def mcba_cost_kernel(
 # ---------------------------------------------------------------------------------------
 
 
+# Levenberg-Marquardt damping of every inverse depth is ``lambda * (C + DEPTH_DAMPING)``
+# (px^2 m^2, the units of C), not ``lambda * C`` alone: that lets a depth which the current
+# state barely observes take an arbitrary step. At the first solve of a sequence the new
+# keyframe starts at the old pose (zero baseline), every temporal Jacobian w.r.t. depth is
+# ~0, and half the depths of the first two keyframes ran to ~1 mm and never came back (RGB
+# only: depth L1 of those keyframes 3.2 / 2.1 m with exact correspondences). A well-observed
+# depth has C ~ 100 (demo median), so at the initial lambda (1e-4: an added 1) this changes
+# little there, and the term shrinks with lambda as steps are accepted.
+DEPTH_DAMPING = wp.constant(1.0e4)
+
+
 @wp.func
 def schur_depth_weight(c: float, lam: float):
-    """``Q = 1 / (C (1 + lambda) + 1e-9)`` of one depth variable; 0 where ``C == 0`` (unobserved)."""
+    """``Q = 1 / (C (1 + lambda) + lambda DEPTH_DAMPING)`` of one depth variable; 0 where ``C == 0`` (unobserved)."""
     if c > 0.0:
-        return 1.0 / (c * (1.0 + lam) + 1.0e-9)
+        return 1.0 / (c * (1.0 + lam) + lam * DEPTH_DAMPING)
     return 0.0
 
 

@@ -82,7 +82,9 @@ def dense_linearization(mcba, edges, targets, weights, keyframes, prior):
 
 
 def depth_weight(Cn, lam):
-    return np.where(Cn > 0, 1.0 / (Cn * (1.0 + lam) + 1e-9), 0.0)
+    from mcgs_warp.kernels.ba import DEPTH_DAMPING
+
+    return np.where(Cn > 0, 1.0 / (Cn * (1.0 + lam) + lam * DEPTH_DAMPING), 0.0)
 
 
 def dense_schur(B, v, G, Cn, wn, lam):
