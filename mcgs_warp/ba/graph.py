@@ -386,7 +386,10 @@ def confirm_loops(buffer: KeyframeBuffer, candidates: np.ndarray, provider, conf
     if M == 0:
         return empty
     both = np.concatenate([cand, cand[:, [2, 3, 0, 1]]])
-    targets, weights = provider.correspondences(buffer, both)
+    # the checks judge the geometry: a provider's photometric factor (GuidedDIS) is applied
+    # to the accepted edges' weights afterwards
+    photometric = getattr(provider, "photometric", None)
+    targets, weights = provider.correspondences(buffer, both, photometric=False) if photometric else provider.correspondences(buffer, both)
     pred, valid, _ = reproject(buffer, both)
     checks, keep = [], []
     for m in range(M):
@@ -407,7 +410,10 @@ def confirm_loops(buffer: KeyframeBuffer, candidates: np.ndarray, provider, conf
     if not keep:
         return empty[:3] + (checks,)
     edges = np.concatenate([both[keep], np.full((len(keep), 1), LOOP, np.int32)], 1)
-    return edges, targets[keep], weights[keep], checks
+    targets, weights = targets[keep], weights[keep]
+    if photometric:
+        targets, weights = photometric(buffer, both[keep], targets, weights)
+    return edges, targets, weights, checks
 
 
 class FactorGraph:
