@@ -372,7 +372,8 @@ def confirm_loops(buffer: KeyframeBuffer, candidates: np.ndarray, provider, conf
     directions (kind LOOP).
 
     ``provider.correspondences(buffer, edges)`` (best :class:`GuidedDIS`: flow from the
-    predicted reprojection) measures both directions. A candidate is accepted when, in both
+    predicted reprojection) measures both directions; a provider with a ``photometric``
+    method (GuidedDIS) is asked without it, and its factor is applied to the accepted edges. A candidate is accepted when, in both
     directions, at least ``config.loop_min_confident`` of the pixels predicted to be visible
     carry a confident match (weight >= 0.5); the median distance between the matches and the
     prediction stays below ``config.loop_max_residual_px`` (the drift the loop may correct;
@@ -389,6 +390,7 @@ def confirm_loops(buffer: KeyframeBuffer, candidates: np.ndarray, provider, conf
     # the checks judge the geometry: a provider's photometric factor (GuidedDIS) is applied
     # to the accepted edges' weights afterwards
     photometric = getattr(provider, "photometric", None)
+    photometric = photometric if callable(photometric) else None
     targets, weights = provider.correspondences(buffer, both, photometric=False) if photometric else provider.correspondences(buffer, both)
     pred, valid, _ = reproject(buffer, both)
     checks, keep = [], []

@@ -253,7 +253,7 @@ def test_new_edges_fall_back_to_plain_dis_when_the_prediction_cannot_guide(synth
     t, w = both.correspondences(P.buf, edges)
     g_t, g_w = guided.correspondences(P.buf, edges)
     r_t, r_w = raw.correspondences(P.buf, edges)
-    poor = (g_w > 0.5).mean(axis=(1, 2)) < 0.25
+    poor = (guided.correspondences(P.buf, edges, photometric=False)[1] > 0.5).mean(axis=(1, 2)) < 0.25
     assert poor.sum() >= len(edges) // 2
     np.testing.assert_array_equal(t[poor], r_t[poor])
     np.testing.assert_array_equal(w[~poor], g_w[~poor])
@@ -320,7 +320,8 @@ def test_buffer_full_rays_are_each_cameras_pixel_rays(synthetic_seq):
 
 def test_patch_sad_is_zero_at_the_true_shift_only():
     """patch_sad compares patches around two sets of pixels: zero where they show the same
-    content (an image and its copy shifted by (5, 3) px), clearly above zero 2 px off."""
+    content (an image and its copy shifted by (5, 3) px, also 0.1 brighter), clearly above
+    zero 2 px off."""
     from mcgs_warp.frontend.flow import patch_sad
 
     rng = np.random.default_rng(0)
@@ -331,6 +332,7 @@ def test_patch_sad_is_zero_at_the_true_shift_only():
     v, u = np.mgrid[10:40:4, 10:60:4].astype(np.float32)
     uv = np.stack([u, v], -1)
     assert patch_sad(a, uv, b, uv + [5, 3]).max() < 1e-5
+    assert patch_sad(a, uv, b + 0.1, uv + [5, 3]).max() < 1e-5  # a brighter view: the same match
     wrong = patch_sad(a, uv, b, uv + [7, 3])
     assert wrong.min() > 0.005 and wrong.mean() > 0.02, (wrong.min(), wrong.mean())
 
@@ -340,7 +342,7 @@ def test_guided_confidence_drops_matches_that_only_agree_with_a_wrong_prediction
     and the forward-backward check passes what it left in place. The photometric factor
     of the confidence keeps fewer such matches: the confident matches are closer to the
     truth with it than without it (photo_sigma = inf: 10 % of them > 4 px off, 3 % with
-    it); with depths this poor it keeps 30-40 % of the view confident (without: 90 %; the
+    it); with depths this poor it keeps 20-40 % of the view confident (without: 90 %; the
     figures depend a little on OpenCV's version and thread count)."""
     from mcgs_warp.frontend.flow import DISFlow, GuidedDIS
 
