@@ -250,7 +250,7 @@ def mcba_cost_kernel(
 # keyframe starts at the old pose (zero baseline), every temporal Jacobian w.r.t. depth is
 # ~0, and half the depths of the first two keyframes ran to ~1 mm and never came back (RGB
 # only: depth L1 of those keyframes 3.2 / 2.1 m with exact correspondences). A well-observed
-# depth has C ~ 100 (demo median), so at the initial lambda (1e-4: an added 1) this changes
+# depth has C ~ 100 (RGB-only demo median at 00a7bf5), so at the initial lambda (1e-4: an added 1) this changes
 # little there, and the term shrinks with lambda as steps are accepted.
 DEPTH_DAMPING = wp.constant(1.0e4)
 

@@ -26,7 +26,13 @@ class FlowProvider:
 
 
 def to_reduced(uv: np.ndarray, stride: int) -> np.ndarray:
+    """Full-resolution pixels -> reduced-grid pixels (grid pixel u' is ``stride u' + stride // 2``)."""
     return (uv - stride // 2) / stride
+
+
+def from_reduced(uv: np.ndarray, stride: int) -> np.ndarray:
+    """Reduced-grid pixels -> full-resolution pixels (the inverse of :func:`to_reduced`)."""
+    return uv * stride + stride // 2
 
 
 class DISFlow(FlowProvider):
@@ -296,7 +302,7 @@ class GuidedDIS(FlowProvider):
             ok = (weights[e, :hr, :wr] > 0.5) & inside.reshape(hr, wr)
             if ok.sum() < 16:
                 continue
-            err = np.linalg.norm(pred.reshape(hr, wr, 2) - (targets[e, :hr, :wr] * s + s // 2), axis=-1)[ok]
+            err = np.linalg.norm(pred.reshape(hr, wr, 2) - from_reduced(targets[e, :hr, :wr], s), axis=-1)[ok]
             out[e] = np.median(err) < self.settled_px and (err > 1.0).mean() <= self.settled_outliers
         return out
 
@@ -338,14 +344,23 @@ class GuidedDIS(FlowProvider):
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
         """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel
         (:func:`patch_sad` of view (i, ci) at the grid pixel and view (j, cj) at its target)."""
+        import cv2
+
         s = buffer.stride
         weights = weights.copy()
-        for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
+        grey: dict = {}  # (keyframe, camera) -> grey image, made once per call
+
+        def grey_of(k, c):
+            if (k, c) not in grey:
+                grey[(k, c)] = cv2.cvtColor(np.asarray(buffer.images[k][c], np.float32), cv2.COLOR_RGB2GRAY)
+            return grey[(k, c)]
+
+        for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):
             uv = grid_pixels(buffer.rig.cameras[ci], s).astype(np.float32)
             hr, wr = uv.shape[:2]
             ok = weights[e, :hr, :wr] > 0
-            t = np.where(ok[..., None], targets[e, :hr, :wr] * s + s // 2, -1e4)
-            sad = patch_sad(buffer.images[i][ci], uv, buffer.images[j][cj], t)
+            t = np.where(ok[..., None], from_reduced(targets[e, :hr, :wr], s), -1e4)  # -1e4: weight already 0
+            sad = patch_sad(grey_of(i, ci), uv, grey_of(j, cj), t)
             weights[e, :hr, :wr] *= np.exp(-((sad / self.photo_sigma) ** 2))
         return targets, weights
 
@@ -355,11 +370,14 @@ def patch_sad(image_a: np.ndarray, uv_a: np.ndarray, image_b: np.ndarray, uv_b: 
     ``image_a`` around ``uv_a`` [h,w,2] and of ``image_b`` around ``uv_b`` [h,w,2], each
     patch pair's mean difference removed, so that a brightness offset between the views
     (auto-exposure, cameras of different gain) does not count (full-resolution pixels,
-    bilinear; RGB images in [0, 1]; borders replicated)."""
+    bilinear; images [H,W,3] RGB in [0, 1] or [H,W] grey; borders replicated)."""
     import cv2
 
-    grey_a = cv2.cvtColor(np.asarray(image_a, np.float32), cv2.COLOR_RGB2GRAY)
-    grey_b = cv2.cvtColor(np.asarray(image_b, np.float32), cv2.COLOR_RGB2GRAY)
+    def grey(image):
+        image = np.asarray(image, np.float32)
+        return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+    grey_a, grey_b = grey(image_a), grey(image_b)
     ua, va = (np.ascontiguousarray(uv_a[..., k], dtype=np.float32) for k in (0, 1))
     ub, vb = (np.ascontiguousarray(uv_b[..., k], dtype=np.float32) for k in (0, 1))
     diffs = []

@@ -335,6 +335,19 @@ def test_patch_sad_is_zero_at_the_true_shift_only():
     assert patch_sad(a, uv, b + 0.1, uv + [5, 3]).max() < 1e-5  # a brighter view: the same match
     wrong = patch_sad(a, uv, b, uv + [7, 3])
     assert wrong.min() > 0.005 and wrong.mean() > 0.02, (wrong.min(), wrong.mean())
+    grey = [cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (a, b)]  # grey input: the same numbers
+    np.testing.assert_allclose(patch_sad(grey[0], uv, grey[1], uv + [7, 3]), wrong, atol=1e-7)
+
+
+def test_reduced_grid_coordinates_round_trip(synthetic_seq):
+    """from_reduced inverts to_reduced, and the grid's own pixels are reduced pixels 0..w-1."""
+    from mcgs_warp.buffer import grid_pixels
+    from mcgs_warp.frontend.flow import from_reduced, to_reduced
+
+    uv = grid_pixels(synthetic_seq.rig.cameras[0], 8)
+    r = to_reduced(uv, 8)
+    np.testing.assert_array_equal(r[0, :3, 0], [0, 1, 2])
+    np.testing.assert_array_equal(from_reduced(r, 8), uv)
 
 
 def test_guided_confidence_drops_matches_that_only_agree_with_a_wrong_prediction(synthetic_seq):
