@@ -37,13 +37,19 @@ def from_reduced(uv: np.ndarray, stride: int) -> np.ndarray:
 
 class DISFlow(FlowProvider):
     """OpenCV DIS flow with forward-backward consistency ``w = exp(-(e / sigma)^2)``
-    (``e``: forward-backward error in full-resolution pixels)."""
+    (``e``: forward-backward error in full-resolution pixels). ``finest_scale``: the
+    pyramid level DIS stops at (0 = full resolution; the presets stop at 1, half
+    resolution, and upsample: about 2.5x faster, but on the built-in sequence's temporal
+    edges the guided matches' mean error is 0.36 instead of 0.27 px, and plain DIS's 1.0
+    instead of 0.77 px); ``None`` keeps the preset's."""
 
-    def __init__(self, preset: str = "medium", sigma: float = 1.0):
+    def __init__(self, preset: str = "medium", sigma: float = 1.0, finest_scale: int | None = None):
         import cv2
 
         presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST, "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
         self.dis = cv2.DISOpticalFlow_create(presets[preset])
+        if finest_scale is not None:
+            self.dis.setFinestScale(finest_scale)
         self.sigma = sigma
 
     @staticmethod

@@ -84,10 +84,10 @@ class SLAM:
         tc = config.tracking
         self.progress = progress or Progress(False)
         self.buf = KeyframeBuffer(sequence.rig, stride=tc.stride, capacity=len(sequence) + 1, device=device)
-        self.flow = DISFlow()
+        self.flow = DISFlow(finest_scale=0)  # correspondences: full-resolution DIS
         self.guided = GuidedDIS(self.flow)
         self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
-        self.selector = KeyframeSelector(self.flow, threshold=tc.keyframe_flow_px)
+        self.selector = KeyframeSelector(DISFlow(), threshold=tc.keyframe_flow_px)  # a mean flow: half resolution is enough
         rig_overlap = camera_overlap(sequence.rig, stride=tc.stride)
         self.stereo = RigStereo(sequence.rig, rig_overlap, device=self.buf.device)
         self.prior = choose_prior(sequence, tc.depth, lambda: self.stereo if self.stereo.pairs else None)
