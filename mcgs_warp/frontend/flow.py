@@ -37,19 +37,26 @@ def from_reduced(uv: np.ndarray, stride: int) -> np.ndarray:
 
 class DISFlow(FlowProvider):
     """OpenCV DIS flow with forward-backward consistency ``w = exp(-(e / sigma)^2)``
-    (``e``: forward-backward error in full-resolution pixels). ``finest_scale``: the
-    pyramid level DIS stops at (0 = full resolution; the presets stop at 1, half
-    resolution, and upsample: about 2.5x faster, but on the built-in sequence's temporal
-    edges the guided matches' mean error is 0.36 instead of 0.27 px, and plain DIS's 1.0
-    instead of 0.77 px); ``None`` keeps the preset's."""
+    (``e``: forward-backward error in full-resolution pixels). ``None`` keeps the preset's
+    value of each of: ``finest_scale``, the pyramid level DIS stops at (0 = full resolution;
+    the presets stop at 1, half resolution, and upsample: about 2.5x faster, but on the
+    built-in sequence's temporal edges the guided matches' mean error is 0.36 instead of
+    0.27 px, and plain DIS's 1.0 instead of 0.77 px); ``patch_size`` (px, preset 8) and
+    ``smoothness``, the variational refinement's weight of flow smoothness (preset 20;
+    :class:`~mcgs_warp.system.slam.SLAM` takes 4 px and 5: smaller patches straddle fewer
+    depth edges, and a weaker smoothness pulls each match less toward its neighbours')."""
 
-    def __init__(self, preset: str = "medium", sigma: float = 1.0, finest_scale: int | None = None):
+    def __init__(self, preset: str = "medium", sigma: float = 1.0, finest_scale: int | None = None, patch_size: int | None = None, smoothness: float | None = None):
         import cv2
 
         presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST, "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
         self.dis = cv2.DISOpticalFlow_create(presets[preset])
         if finest_scale is not None:
             self.dis.setFinestScale(finest_scale)
+        if patch_size is not None:
+            self.dis.setPatchSize(patch_size)
+        if smoothness is not None:
+            self.dis.setVariationalRefinementAlpha(smoothness)
         self.sigma = sigma
 
     @staticmethod

@@ -84,7 +84,7 @@ class SLAM:
         tc = config.tracking
         self.progress = progress or Progress(False)
         self.buf = KeyframeBuffer(sequence.rig, stride=tc.stride, capacity=len(sequence) + 1, device=device)
-        self.flow = DISFlow(finest_scale=0)  # correspondences: full-resolution DIS
+        self.flow = DISFlow(finest_scale=0, patch_size=4, smoothness=5.0)  # correspondences: full-resolution DIS, small patches
         self.guided = GuidedDIS(self.flow)
         self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
         self.selector = KeyframeSelector(DISFlow(), threshold=tc.keyframe_flow_px)  # a mean flow: half resolution is enough
