@@ -84,13 +84,17 @@ class SLAM:
         tc = config.tracking
         self.progress = progress or Progress(False)
         self.buf = KeyframeBuffer(sequence.rig, stride=tc.stride, capacity=len(sequence) + 1, device=device)
-        self.flow = DISFlow(finest_scale=0, patch_size=4, smoothness=5.0)  # correspondences: full-resolution DIS, small patches
-        self.guided = GuidedDIS(self.flow)
-        self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
-        self.selector = KeyframeSelector(DISFlow(), threshold=tc.keyframe_flow_px)  # a mean flow: half resolution is enough
         rig_overlap = camera_overlap(sequence.rig, stride=tc.stride)
         self.stereo = RigStereo(sequence.rig, rig_overlap, device=self.buf.device)
         self.prior = choose_prior(sequence, tc.depth, lambda: self.stereo if self.stereo.pairs else None)
+        # Correspondences: where they measure depth, full-resolution DIS with small patches (RGB
+        # only, seed 1: depth L1 0.206 -> 0.137 m); with exact sensor depth they only constrain
+        # the poses, and the preset (half resolution) is 3.7x cheaper per call (the demo: SE(3)
+        # ATE 2.54 vs 2.31 mm, 60 vs 74-78 s of SLAM time).
+        self.flow = DISFlow() if self.exact_depth else DISFlow(finest_scale=0, patch_size=4, smoothness=5.0)
+        self.guided = GuidedDIS(self.flow)
+        self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
+        self.selector = KeyframeSelector(DISFlow(), threshold=tc.keyframe_flow_px)  # a mean flow: half resolution is enough
         # Cross-view edges (eq. 8) constrain only depth; exact sensor depth already fixes it,
         # so with it they cost their sweeps and change nothing (demo: 4.3 vs 4.5 mm SE(3) ATE).
         self.overlap = rig_overlap if tc.cross_view and not self.exact_depth else None
