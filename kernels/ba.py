@@ -122,6 +122,7 @@ def mcba_linearize_kernel(
     targets: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] corresponding pixel in (j, cj)
     weights: wp.array(dtype=float, ndim=3),  # [E,h,w] confidence >= 0 (NaN/Inf target or weight: 0)
     huber_delta: float,  # px
+    row0: int,  # first grid row of this launch (a band of rows: see mcgs_warp.kernels.launch)
     H: wp.array(dtype=mat66d, ndim=2),  # [E,3] out (accumulated, float64): H_ii, H_ij, H_jj
     g: wp.array(dtype=vec6d, ndim=2),  # [E,2] out (accumulated, float64): v_i, v_j
     Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2] out: E_i, E_j per pixel
@@ -130,6 +131,7 @@ def mcba_linearize_kernel(
     cost: wp.array(dtype=float),  # [E] out (accumulated robust cost)
 ):
     e, y, x = wp.tid()
+    y = y + row0
     edge = edges[e]
     i = edge[0]
     ci = edge[1]
@@ -204,10 +206,12 @@ def mcba_cost_kernel(
     targets: wp.array(dtype=wp.vec2, ndim=3),
     weights: wp.array(dtype=float, ndim=3),
     huber_delta: float,
+    row0: int,  # first grid row of this launch
     cost: wp.array(dtype=float),  # [E] out (accumulated)
 ):
     """Robust cost only (for accepting or rejecting an LM step)."""
     e, y, x = wp.tid()
+    y = y + row0
     edge = edges[e]
     cam_i = cameras[edge[1]]
     if x >= cam_i.width or y >= cam_i.height:
@@ -334,10 +338,12 @@ def schur_pairs_kernel(
     edges: wp.array(dtype=wp.vec4i),  # [E] (slot i, ci, slot j, cj)
     pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2): pose edges leaving the same view (i, ci)
     lam: float,  # Levenberg-Marquardt damping of the depth block
+    p0: int,  # first pair of this launch (a band of pairs: see mcgs_warp.kernels.launch)
     blocks: wp.array(dtype=mat66d, ndim=2),  # [P,4] out (accumulated, float64): (i,i), (i,j2), (j1,i), (j1,j2)
 ):
     """Per pair and image row: ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for the four (a, b)."""
     p, y = wp.tid()
+    p = p + p0
     e1 = pairs[p][0]
     e2 = pairs[p][1]
     edge = edges[e1]
@@ -372,10 +378,12 @@ def schur_rhs_kernel(
     edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
     pose_edges: wp.array(dtype=wp.int32),  # [Ep] edges with i != j
     lam: float,
+    k0: int,  # first pose edge of this launch
     out: wp.array(dtype=vec6d, ndim=2),  # [E,2] out (accumulated, float64): sum_p E_{e,i} Q w, sum_p E_{e,j} Q w
 ):
     """Per pose edge and image row, the depth part of the reduced gradient ``E C^-1 w``."""
     k, y = wp.tid()
+    k = k + k0
     e = pose_edges[k]
     s = edges[e][0]
     c = edges[e][1]

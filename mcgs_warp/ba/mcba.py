@@ -39,6 +39,7 @@ import warp as wp
 
 from ..buffer import KeyframeBuffer
 from ..kernels.camera import FAR
+from ..kernels.launch import cpu_workers, run_row_bands
 
 
 @dataclass
@@ -246,6 +247,14 @@ class _Window:
             self.Ct, self.wt = wp.empty_like(self.Cd), wp.empty_like(self.wd)
         self.edge_cost = wp.empty(E, dtype=float, device=dev)
         self.total = wp.empty(1, dtype=wp.float64, device=dev)
+        # Per-edge sums of a launch banded over grid rows (CPU threads, kernels/launch.py):
+        # each worker accumulates its own, summed in worker order afterwards (deterministic).
+        self.workers = 1 if dev.is_cuda else min(cpu_workers(), h)
+        if self.workers > 1:
+            self.H_w = wp.empty((self.workers, E, 3), dtype=mat66d, device=dev)
+            self.g_w = wp.empty((self.workers, E, 2), dtype=vec6d, device=dev)
+            self.cost_w = wp.empty((self.workers, E), dtype=float, device=dev)
+        self.cost_scratch = wp.empty(self.workers * E, dtype=float, device=dev)  # _total_cost's per-worker sums
         self.coupling = wp.empty(self.shape, dtype=float, device=dev)
         self.dxi = wp.empty(n, dtype=vec6, device=dev)
         self.nonfinite = wp.empty(1, dtype=wp.int32, device=dev)
@@ -274,15 +283,20 @@ class _Window:
         from ..kernels.ba import mcba_linearize_kernel, prior_terms_kernel
 
         buf, cfg, dev = self.buf, self.cfg, self.dev
-        for arr in (self.H, self.g, self.Epix, self.Cd, self.wd, self.edge_cost):
+        banded = self.workers > 1
+        sums = (self.H_w, self.g_w, self.cost_w) if banded else (self.H, self.g, self.edge_cost)
+        for arr in (*sums, self.Epix, self.Cd, self.wd):
             arr.zero_()
-        wp.launch(
-            mcba_linearize_kernel,
-            dim=(self.E, buf.h, buf.w),
-            inputs=[buf.rays, self.disp, self.poses, buf.T_b_c, buf.cameras, *self.arrays, cfg.huber_delta],
-            outputs=[self.H, self.g, self.Epix, self.Cd, self.wd, self.edge_cost],
-            device=dev,
-        )
+        inputs = [buf.rays, self.disp, self.poses, buf.T_b_c, buf.cameras, *self.arrays, cfg.huber_delta]
+
+        def band(worker, row0, rows):  # rows never share a depth (Cd, wd, Epix); per-edge sums go per worker
+            H, g, cost = (a[worker] for a in sums) if banded else sums
+            wp.launch(mcba_linearize_kernel, dim=(self.E, rows, buf.w), inputs=[*inputs, row0], outputs=[H, g, self.Epix, self.Cd, self.wd, cost], device=dev)
+
+        run_row_bands(dev, buf.h, band)
+        if banded:
+            for total, parts in zip((self.H, self.g, self.edge_cost), sums):
+                total.numpy()[...] = parts.numpy().sum(axis=0)  # CPU: numpy() is the array itself
         if self.prior is not None:
             wp.launch(
                 prior_terms_kernel,
@@ -302,10 +316,13 @@ class _Window:
         for arr in (self.blocks, self.depth_rhs, self.S, self.rhs):
             arr.zero_()
         if self.P:
-            wp.launch(schur_pairs_kernel, dim=(self.P, h), inputs=[self.Epix, self.Ct, e_arr, self.pairs, lam], outputs=[self.blocks], device=dev)
+            # banded over pairs and pose edges (each writes only its own blocks)
+            run_row_bands(dev, self.P, lambda w, p0, n: wp.launch(schur_pairs_kernel, dim=(n, h), inputs=[self.Epix, self.Ct, e_arr, self.pairs, lam, p0], outputs=[self.blocks], device=dev))
             wp.launch(schur_scatter_kernel, dim=(self.P, 4, 6, 6), inputs=[self.blocks, self.pairs, e_arr], outputs=[self.S], device=dev)
-            wp.launch(
-                schur_rhs_kernel, dim=(len(self.pe), h), inputs=[self.Epix, self.Ct, self.wt, e_arr, self.pose_edges, lam], outputs=[self.depth_rhs], device=dev
+            run_row_bands(
+                dev,
+                len(self.pe),
+                lambda w, k0, n: wp.launch(schur_rhs_kernel, dim=(n, h), inputs=[self.Epix, self.Ct, self.wt, e_arr, self.pose_edges, lam, k0], outputs=[self.depth_rhs], device=dev),
             )
             wp.launch(pose_system_kernel, dim=(len(self.pe), 6, 6), inputs=[self.H, self.g, self.depth_rhs, e_arr, self.pose_edges], outputs=[self.S, self.rhs], device=dev)
         return self.S.numpy().copy(), self.rhs.numpy().copy()
@@ -340,7 +357,7 @@ class _Window:
     def cost(self, disp, poses) -> float:
         """Robust reprojection cost plus the prior cost of a window state (float64 sum)."""
         prior = None if self.prior is None else (disp, *self.prior)
-        return _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.edge_cost, self.total)
+        return _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.cost_scratch, self.total)
 
     def accept(self) -> None:
         self.disp, self.disp_c = self.disp_c, self.disp
@@ -370,22 +387,24 @@ def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int,
     """Robust reprojection cost of ``edge_arrays`` at ``disp`` [K,C,h,w] and ``poses`` [K]
     (indexed as the edges are) plus, with ``prior = (disp_window, target, mask)``
     (device arrays [n,C,h,w]), the prior cost; summed in float64 on the device.
-    ``edge_cost`` [E] and ``total`` [1] are optional scratch arrays."""
+    ``edge_cost`` [workers * E] (per-worker sums of the row bands) and ``total`` [1] are
+    optional scratch arrays."""
     from ..kernels.ba import mcba_cost_kernel, prior_cost_kernel, sum_float64_kernel
 
     dev = buf.device
-    edge_cost = wp.empty(n_edges, dtype=float, device=dev) if edge_cost is None else edge_cost
+    workers = 1 if dev.is_cuda else min(cpu_workers(), buf.h)
+    if edge_cost is None or edge_cost.shape[0] < workers * n_edges:
+        edge_cost = wp.empty(workers * n_edges, dtype=float, device=dev)  # [workers * E]: per-worker sums
     total = wp.empty(1, dtype=wp.float64, device=dev) if total is None else total
     edge_cost.zero_()
     total.zero_()
-    wp.launch(
-        mcba_cost_kernel,
-        dim=(n_edges, buf.h, buf.w),
-        inputs=[buf.rays, disp, poses, buf.T_b_c, buf.cameras, *edge_arrays, cfg.huber_delta],
-        outputs=[edge_cost],
-        device=dev,
+    inputs = [buf.rays, disp, poses, buf.T_b_c, buf.cameras, *edge_arrays, cfg.huber_delta]
+    run_row_bands(
+        dev,
+        buf.h,
+        lambda w, row0, rows: wp.launch(mcba_cost_kernel, dim=(n_edges, rows, buf.w), inputs=[*inputs, row0], outputs=[edge_cost[w * n_edges : (w + 1) * n_edges]], device=dev),
     )
-    wp.launch(sum_float64_kernel, dim=n_edges, inputs=[edge_cost], outputs=[total], device=dev)
+    wp.launch(sum_float64_kernel, dim=workers * n_edges, inputs=[edge_cost], outputs=[total], device=dev)
     if prior is not None:
         wp.launch(prior_cost_kernel, dim=prior[0].shape, inputs=[*prior, cfg.prior_weight], outputs=[total], device=dev)
     return float(total.numpy()[0])

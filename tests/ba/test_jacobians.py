@@ -82,7 +82,7 @@ def test_blocks_match_finite_differences(model):
         inputs=[
             buf.rays, buf.disp, buf.poses, buf.T_b_c, buf.cameras,
             wp.array(edges, dtype=wp.vec4i), wp.array(targets.astype(np.float32), dtype=wp.vec2),
-            wp.array(weights.astype(np.float32), dtype=float), 1e6,
+            wp.array(weights.astype(np.float32), dtype=float), 1e6, 0,
         ],
         outputs=[H, g, Epix, Cd, wd, cost],
     )  # fmt: skip

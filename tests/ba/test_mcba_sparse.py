@@ -51,7 +51,7 @@ def dense_linearization(mcba, edges, targets, weights, keyframes, prior):
     wd = wp.zeros((buf.capacity, C, h, w), dtype=float)
     cost = wp.zeros(E, dtype=float)
     arrays = mcba._arrays(edges, targets, weights)
-    inputs = [buf.rays, buf.disp, buf.poses, buf.T_b_c, buf.cameras, *arrays, cfg.huber_delta]
+    inputs = [buf.rays, buf.disp, buf.poses, buf.T_b_c, buf.cameras, *arrays, cfg.huber_delta, 0]
     wp.launch(mcba_linearize_kernel, dim=(E, h, w), inputs=inputs, outputs=[H, g, Epix, Cd, wd, cost])
     Hn, gn = H.numpy().astype(np.float64), g.numpy().astype(np.float64)
     En = Epix.numpy().astype(np.float64).reshape(E, h * w, 2, 6)
@@ -199,3 +199,22 @@ def test_solve_follows_the_dense_solver(synthetic_seq, prior_weight):
     np.testing.assert_array_equal(buf.poses.numpy()[[0, 3]], start[1][[0, 3]])  # outside the window; the gauge
     np.testing.assert_array_equal(buf.disp.numpy()[0], start[0][0])
     assert_close_mostly(stats.depth_info, info)
+
+
+def test_reduced_system_and_cost_do_not_depend_on_the_cpu_thread_count(synthetic_seq, monkeypatch):
+    """On the CPU the linearization, the cost and the Schur reduction run as bands of grid
+    rows (or of edge pairs) on several threads, each summing its own per-edge terms: one
+    thread and three give the same system and cost up to float summation order."""
+    P, edges, targets, weights = make_problem(synthetic_seq, seed=2)
+    mcba = MCBA(P.buf, MCBAConfig(prior_weight=0.5))
+    out = {}
+    for threads in ("1", "3"):
+        monkeypatch.setenv("MCGS_WARP_CPU_THREADS", threads)
+        S, rhs = mcba.reduced_system(edges, targets, weights, keyframes=WINDOW, lam=0.01)
+        cost = mcba.cost(mcba._arrays(edges, targets, weights), len(edges))
+        out[threads] = S, rhs, cost
+    (S1, r1, c1), (S3, r3, c3) = out["1"], out["3"]
+    assert np.abs(S1).max() > 0 and c1 > 0
+    np.testing.assert_allclose(S3, S1, rtol=1e-5, atol=1e-6 * np.abs(S1).max())
+    np.testing.assert_allclose(r3, r1, rtol=1e-5, atol=1e-6 * np.abs(r1).max())
+    assert abs(c3 - c1) <= 1e-5 * c1, (c3, c1)

@@ -86,3 +86,17 @@ def write_config(tmp_path):
     path = tmp_path / "short.yaml"
     path.write_text("mapping:\n  iterations_per_keyframe: 5\nrefinement:\n  iterations: 10\noutput:\n  renders: 0\n")
     return path
+
+
+def test_correspondence_resolution_follows_the_depth_source(sequences):
+    """Where correspondences measure depth (no exact depth) DIS runs to full resolution
+    with small patches; with exact sensor depth they only constrain the poses and the
+    cheaper half-resolution preset is used. The keyframe test always uses the preset."""
+    from mcgs_warp.data import open_sequence
+    from mcgs_warp.system.slam import SLAM
+
+    for mode, finest, patch in (("none", 0, 4), ("exact", 1, 8)):
+        slam = SLAM(open_sequence(sequences[mode]), RunConfig())
+        assert slam.exact_depth == (mode == "exact")
+        assert (slam.flow.dis.getFinestScale(), slam.flow.dis.getPatchSize()) == (finest, patch), mode
+        assert slam.guided.dis is slam.flow and slam.selector.flow.dis.getFinestScale() == 1
