@@ -248,13 +248,10 @@ class _Window:
         self.edge_cost = wp.empty(E, dtype=float, device=dev)
         self.total = wp.empty(1, dtype=wp.float64, device=dev)
         # Per-edge sums of a launch banded over grid rows (CPU threads, kernels/launch.py):
-        # each worker accumulates its own, summed in worker order afterwards (deterministic).
-        self.workers = 1 if dev.is_cuda else min(cpu_workers(), h)
-        if self.workers > 1:
-            self.H_w = wp.empty((self.workers, E, 3), dtype=mat66d, device=dev)
-            self.g_w = wp.empty((self.workers, E, 2), dtype=vec6d, device=dev)
-            self.cost_w = wp.empty((self.workers, E), dtype=float, device=dev)
-        self.cost_scratch = wp.empty(self.workers * E, dtype=float, device=dev)  # _total_cost's per-worker sums
+        # each worker accumulates its own, summed in worker order afterwards (deterministic);
+        # made at the first linearization, for the worker count of that moment.
+        self.per_worker = None  # (H [W,E,3], g [W,E,2], cost [W,E])
+        self.cost_scratch = None  # _total_cost's per-worker sums
         self.coupling = wp.empty(self.shape, dtype=float, device=dev)
         self.dxi = wp.empty(n, dtype=vec6, device=dev)
         self.nonfinite = wp.empty(1, dtype=wp.int32, device=dev)
@@ -282,9 +279,14 @@ class _Window:
         """Run the MCBA kernel at the current window state; add the prior's depth terms."""
         from ..kernels.ba import mcba_linearize_kernel, prior_terms_kernel
 
-        buf, cfg, dev = self.buf, self.cfg, self.dev
-        banded = self.workers > 1
-        sums = (self.H_w, self.g_w, self.cost_w) if banded else (self.H, self.g, self.edge_cost)
+        from ..kernels.ba import mat66d, vec6d
+
+        buf, cfg, dev, E = self.buf, self.cfg, self.dev, self.E
+        workers = 1 if dev.is_cuda else min(cpu_workers(), buf.h)
+        banded = workers > 1
+        if banded and (self.per_worker is None or self.per_worker[2].shape[0] < workers):
+            self.per_worker = (wp.empty((workers, E, 3), dtype=mat66d, device=dev), wp.empty((workers, E, 2), dtype=vec6d, device=dev), wp.empty((workers, E), dtype=float, device=dev))
+        sums = self.per_worker if banded else (self.H, self.g, self.edge_cost)
         for arr in (*sums, self.Epix, self.Cd, self.wd):
             arr.zero_()
         inputs = [buf.rays, self.disp, self.poses, buf.T_b_c, buf.cameras, *self.arrays, cfg.huber_delta]
@@ -357,7 +359,8 @@ class _Window:
     def cost(self, disp, poses) -> float:
         """Robust reprojection cost plus the prior cost of a window state (float64 sum)."""
         prior = None if self.prior is None else (disp, *self.prior)
-        return _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.cost_scratch, self.total)
+        cost, self.cost_scratch = _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.cost_scratch, self.total, scratch_out=True)
+        return cost
 
     def accept(self) -> None:
         self.disp, self.disp_c = self.disp_c, self.disp
@@ -383,12 +386,13 @@ def _edge_arrays(edges: np.ndarray, targets, weights, device):
     )
 
 
-def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int, disp, poses, prior=None, edge_cost=None, total=None) -> float:
+def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int, disp, poses, prior=None, edge_cost=None, total=None, scratch_out=False):
     """Robust reprojection cost of ``edge_arrays`` at ``disp`` [K,C,h,w] and ``poses`` [K]
     (indexed as the edges are) plus, with ``prior = (disp_window, target, mask)``
     (device arrays [n,C,h,w]), the prior cost; summed in float64 on the device.
-    ``edge_cost`` [workers * E] (per-worker sums of the row bands) and ``total`` [1] are
-    optional scratch arrays."""
+    ``edge_cost`` [workers * E] (per-worker sums of the row bands; a larger one is made when
+    it is missing or too small) and ``total`` [1] are optional scratch arrays; with
+    ``scratch_out`` returns ``(cost, edge_cost)`` so a caller can keep the scratch it got."""
     from ..kernels.ba import mcba_cost_kernel, prior_cost_kernel, sum_float64_kernel
 
     dev = buf.device
@@ -407,4 +411,5 @@ def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int,
     wp.launch(sum_float64_kernel, dim=workers * n_edges, inputs=[edge_cost], outputs=[total], device=dev)
     if prior is not None:
         wp.launch(prior_cost_kernel, dim=prior[0].shape, inputs=[*prior, cfg.prior_weight], outputs=[total], device=dev)
-    return float(total.numpy()[0])
+    cost = float(total.numpy()[0])
+    return (cost, edge_cost) if scratch_out else cost
