@@ -23,12 +23,18 @@ def cpu_workers() -> int:
     return max(1, int(os.environ.get("MCGS_WARP_CPU_THREADS", os.cpu_count() or 1)))
 
 
+def band_workers(device, height: int) -> int:
+    """Workers :func:`run_row_bands` uses for ``height`` rows: 1 on CUDA, else at most one
+    per CPU thread and per row (callers size per-worker accumulators with it)."""
+    return 1 if device.is_cuda else min(cpu_workers(), max(1, height))
+
+
 def run_row_bands(device, height: int, launch_band) -> int:
     """Call ``launch_band(worker, row0, rows)`` over bands of image rows. On CUDA one call
     covers all rows; on the CPU worker ``w`` runs bands ``w, w + workers, ...`` in order.
     Returns the number of workers used."""
     global _pool
-    workers = 1 if device.is_cuda else min(cpu_workers(), max(1, height))
+    workers = band_workers(device, height)
     if workers == 1:
         launch_band(0, 0, height)
         return 1

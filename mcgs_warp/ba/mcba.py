@@ -39,7 +39,7 @@ import warp as wp
 
 from ..buffer import KeyframeBuffer
 from ..kernels.camera import FAR
-from ..kernels.launch import cpu_workers, run_row_bands
+from ..kernels.launch import band_workers, run_row_bands
 
 
 @dataclass
@@ -277,12 +277,10 @@ class _Window:
     # ----------------------------------------------------------------------------------
     def linearize(self) -> None:
         """Run the MCBA kernel at the current window state; add the prior's depth terms."""
-        from ..kernels.ba import mcba_linearize_kernel, prior_terms_kernel
-
-        from ..kernels.ba import mat66d, vec6d
+        from ..kernels.ba import mat66d, mcba_linearize_kernel, prior_terms_kernel, vec6d
 
         buf, cfg, dev, E = self.buf, self.cfg, self.dev, self.E
-        workers = 1 if dev.is_cuda else min(cpu_workers(), buf.h)
+        workers = band_workers(dev, buf.h)
         banded = workers > 1
         if banded and (self.per_worker is None or self.per_worker[2].shape[0] < workers):
             self.per_worker = (wp.empty((workers, E, 3), dtype=mat66d, device=dev), wp.empty((workers, E, 2), dtype=vec6d, device=dev), wp.empty((workers, E), dtype=float, device=dev))
@@ -359,8 +357,10 @@ class _Window:
     def cost(self, disp, poses) -> float:
         """Robust reprojection cost plus the prior cost of a window state (float64 sum)."""
         prior = None if self.prior is None else (disp, *self.prior)
-        cost, self.cost_scratch = _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.cost_scratch, self.total, scratch_out=True)
-        return cost
+        n = band_workers(self.dev, self.buf.h) * self.E
+        if self.cost_scratch is None or self.cost_scratch.shape[0] < n:
+            self.cost_scratch = wp.empty(n, dtype=float, device=self.dev)
+        return _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.cost_scratch, self.total)
 
     def accept(self) -> None:
         self.disp, self.disp_c = self.disp_c, self.disp
@@ -386,19 +386,18 @@ def _edge_arrays(edges: np.ndarray, targets, weights, device):
     )
 
 
-def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int, disp, poses, prior=None, edge_cost=None, total=None, scratch_out=False):
+def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int, disp, poses, prior=None, edge_cost=None, total=None) -> float:
     """Robust reprojection cost of ``edge_arrays`` at ``disp`` [K,C,h,w] and ``poses`` [K]
     (indexed as the edges are) plus, with ``prior = (disp_window, target, mask)``
     (device arrays [n,C,h,w]), the prior cost; summed in float64 on the device.
-    ``edge_cost`` [workers * E] (per-worker sums of the row bands; a larger one is made when
-    it is missing or too small) and ``total`` [1] are optional scratch arrays; with
-    ``scratch_out`` returns ``(cost, edge_cost)`` so a caller can keep the scratch it got."""
+    ``edge_cost`` [>= workers * E] (per-worker sums of the row bands, see
+    :func:`~mcgs_warp.kernels.launch.band_workers`) and ``total`` [1] are optional scratch arrays."""
     from ..kernels.ba import mcba_cost_kernel, prior_cost_kernel, sum_float64_kernel
 
     dev = buf.device
-    workers = 1 if dev.is_cuda else min(cpu_workers(), buf.h)
+    workers = band_workers(dev, buf.h)
     if edge_cost is None or edge_cost.shape[0] < workers * n_edges:
-        edge_cost = wp.empty(workers * n_edges, dtype=float, device=dev)  # [workers * E]: per-worker sums
+        edge_cost = wp.empty(workers * n_edges, dtype=float, device=dev)
     total = wp.empty(1, dtype=wp.float64, device=dev) if total is None else total
     edge_cost.zero_()
     total.zero_()
@@ -411,5 +410,4 @@ def _total_cost(buf: KeyframeBuffer, cfg: MCBAConfig, edge_arrays, n_edges: int,
     wp.launch(sum_float64_kernel, dim=workers * n_edges, inputs=[edge_cost], outputs=[total], device=dev)
     if prior is not None:
         wp.launch(prior_cost_kernel, dim=prior[0].shape, inputs=[*prior, cfg.prior_weight], outputs=[total], device=dev)
-    cost = float(total.numpy()[0])
-    return (cost, edge_cost) if scratch_out else cost
+    return float(total.numpy()[0])

@@ -43,8 +43,8 @@ class DISFlow(FlowProvider):
     built-in sequence's temporal edges the guided matches' mean error is 0.36 instead of
     0.27 px, and plain DIS's 1.0 instead of 0.77 px); ``patch_size`` (px, preset 8) and
     ``smoothness``, the variational refinement's weight of flow smoothness (preset 20;
-    :class:`~mcgs_warp.system.slam.SLAM` takes 4 px and 5: smaller patches straddle fewer
-    depth edges, and a weaker smoothness pulls each match less toward its neighbours')."""
+    :class:`~mcgs_warp.system.slam.SLAM` takes full resolution, 4 px and 5 wherever the matches
+    measure depth, i.e. without exact sensor depth: fewer gross errors on wide edges)."""
 
     def __init__(self, preset: str = "medium", sigma: float = 1.0, finest_scale: int | None = None, patch_size: int | None = None, smoothness: float | None = None):
         import cv2

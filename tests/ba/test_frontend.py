@@ -25,7 +25,6 @@ def test_dis_correspondences_agree_with_ground_truth(synthetic_seq):
     assert np.mean(err[confident]) < np.mean(err[both])  # the confidence singles out bad flow
 
 
-
 def test_dis_settings_of_the_slam_loop_beat_the_preset(synthetic_seq):
     """Full resolution (finest_scale 0) halves the median error of the medium preset (which
     stops at half resolution); small patches with weak smoothness, as the SLAM loop uses
@@ -43,6 +42,7 @@ def test_dis_settings_of_the_slam_loop_beat_the_preset(synthetic_seq):
     assert np.median(full) < 0.7 * np.median(preset), (np.median(full), np.median(preset))
     assert np.mean(slam) < 0.5 * np.mean(preset), (np.mean(slam), np.mean(preset))
     assert np.mean(slam) < 0.5 * np.mean(full), (np.mean(slam), np.mean(full))
+
 
 def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
     """An edge and its reverse come from the same two DIS runs and equal what each edge
