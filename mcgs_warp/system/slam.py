@@ -252,6 +252,39 @@ class SLAM:
             out.append(full)
         return out
 
+    def photo_consistent_targets(self, keyframes, radius: int) -> None:
+        """Sharpen estimated mapping targets with the solved poses: one PatchMatch-style pass
+        (:func:`~mcgs_warp.kernels.stereo.propagate_depth`) per view against the same camera
+        up to ``radius`` keyframes either side and the rig's overlapping cameras at the same
+        time. MCBA's depth lives on a grid of 8 px cells and is upsampled, so depth edges
+        spread over a cell and plain surfaces carry the grid's error; each pixel now takes
+        the nearby depth (or a 2-5 % change of its own) that its 9x9 window matches best."""
+        from ..frontend.stereo import grey
+        from ..kernels.stereo import propagate_depth
+
+        buf, rig = self.buf, self.seq.rig
+        poses, rays = buf.get_poses(), buf.full_rays
+        T_w_c = {(k, c): poses[k] @ spec.T_b_c for k in range(len(buf)) for c, spec in enumerate(rig.cameras)}
+        cams = [spec.warp_camera() for spec in rig.cameras]
+        greys: dict = {}
+
+        def grey_of(k, c):
+            if (k, c) not in greys:
+                greys[(k, c)] = grey(buf.images[k][c], 1)
+            return greys[(k, c)]
+
+        todo = [k for k in keyframes if k in self.mapper.depths]
+        for n, k in enumerate(todo):
+            targets = []
+            for c, spec in enumerate(rig.cameras):
+                views = [(k2, c) for k2 in range(max(0, k - radius), min(len(buf), k + radius + 1)) if k2 != k]
+                views += [(k, b) for a, b in self.stereo.pairs if a == c]
+                T_src_ref = np.stack([np.linalg.inv(T_w_c[v]) @ T_w_c[(k, c)] for v in views]) if views else np.zeros((0, 4, 4))
+                depth = np.asarray(self.mapper.depths[k][c], np.float32)
+                targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, device=buf.device))
+            self.mapper.depths[k] = targets
+            self.progress("photo depth", n + 1, len(todo))
+
     def _measured_weight(self, keyframes) -> dict:
         """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or
         stored) leaving each of its grid pixels (:meth:`FactorGraph.measured_weight`)."""
@@ -402,6 +435,8 @@ class SLAM:
                 self.mcba.cfg.prior_weight = 0.0
             self._solve(everything, guided_new=True)
             self.mcba.cfg.iterations, self.mcba.cfg.prior_weight = saved
+            if rc.photo_depth_radius > 0 and not self.exact_depth:
+                self.photo_consistent_targets(everything, rc.photo_depth_radius)
             self.seconds["global_ba"] = time.perf_counter() - t0
             self.progress("global BA", 1, 1, force=True)
         if rc.iterations:

@@ -113,3 +113,92 @@ def test_temporal_sources_measure_the_far_scene_the_rig_baseline_cannot():
     won_err, won_n = error(t_d, t_c, far & temporal)
     assert won_n > 0.2 * far.sum() and won_err < 0.1, (won_n, won_err)
     assert error(rig_d[0], rig_c[0], far & temporal & (rig_c[0] > 0))[0] > 1.5 * won_err
+
+
+def grid_like(depth: np.ndarray, stride: int = 8, amplitude: float = 0.1) -> np.ndarray:
+    """What MCBA hands the mapper: depth sampled every ``stride`` px, upsampled bilinearly in
+    inverse depth (edges spread over a cell), times a smooth error field within
+    ``1 +- amplitude``."""
+    import cv2
+
+    H, W = depth.shape
+    inv = np.where(depth > 0, 1.0 / np.maximum(depth, 1e-6), 0.0).astype(np.float32)
+    up = cv2.resize(inv[stride // 2 :: stride, stride // 2 :: stride], (W, H), interpolation=cv2.INTER_LINEAR)
+    field = cv2.resize(np.random.default_rng(0).uniform(1 - amplitude, 1 + amplitude, (4, 6)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
+    return np.where(up > 0, field / np.maximum(up, 1e-6), 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_propagation_moves_a_grid_depth_towards_the_raycast_depth(model):
+    """One PatchMatch-style pass against five views at known poses (the rig pair now, both
+    cameras 0.6 m back and 0.3 m ahead) takes a blurred, up to 10 %-off depth map closer to
+    the ray-cast depth, for every camera model as the reference: the mean error falls by a
+    fifth, the median relative error by half; an exact map stays nearly exact (median
+    change below 0.5 %); pixels without depth stay without."""
+    from mcgs_warp.frontend.stereo import grey
+    from mcgs_warp.kernels.stereo import camera_rays, propagate_depth
+
+    rig = two_camera_rig(model, baseline=0.3)
+    T_w_b = np.eye(4)
+    T_w_b[:3, :3] = yaw_pitch_roll(0.9)
+    T_w_b[:3, 3] = (4.0, 0.3, 1.4)
+    images, depths = render(rig, T_w_b)
+    views = [(images[1], T_w_b @ rig.cameras[1].T_b_c, 1)]
+    for step in (-0.6, 0.3):
+        T = T_w_b.copy()
+        T[:3, 3] += T_w_b[:3, 0] * step
+        other, _ = render(rig, T)
+        views += [(other[c], T @ rig.cameras[c].T_b_c, c) for c in (0, 1)]
+    cams = [c.warp_camera() for c in rig.cameras]
+    ref_c = T_w_b @ rig.cameras[0].T_b_c
+
+    def propagate(depth):
+        return propagate_depth(grey(images[0], 1), camera_rays(cams[0], "cpu"), depth, [grey(im, 1) for im, _T, _c in views], [cams[c] for _im, _T, c in views], np.stack([np.linalg.inv(T) @ ref_c for _im, T, _c in views]))
+
+    gt = depths[0]
+    start = grid_like(gt)
+    start[:20, :20] = 0.0  # unknown
+    out = propagate(start)
+    assert out.shape == gt.shape and ((out > 0) == (start > 0)).all()
+    ok = (gt > 0) & (start > 0)
+    before, after = np.abs(start - gt)[ok], np.abs(out - gt)[ok]
+    assert after.mean() < 0.8 * before.mean(), (after.mean(), before.mean())
+    assert np.median(after / gt[ok]) < 0.5 * np.median(before / gt[ok]), (np.median(after / gt[ok]), np.median(before / gt[ok]))
+    exact = propagate(np.where(gt > 0, gt, 0.0).astype(np.float32))
+    assert np.median(np.abs(exact - gt)[gt > 0] / gt[gt > 0]) < 0.005
+
+
+def test_separable_window_zncc_equals_the_direct_window_sum():
+    """The two-pass window sums of the propagation give the ZNCC of the direct (2r+1)^2 sum
+    of the sweep (zncc_cost_kernel) wherever the whole window is valid, and the lowest two
+    costs over sources fed one at a time."""
+    import warp as wp
+
+    from mcgs_warp.kernels.stereo import NO_COST, window_rows_kernel, window_sums, window_zncc_kernel, zncc_cost_kernel
+
+    rng = np.random.default_rng(3)
+    S, D, H, W, r = 3, 4, 20, 24, 2
+    ref = rng.random((H, W)).astype(np.float32)
+    warped = rng.random((S, D, H, W)).astype(np.float32)
+    warped[rng.random((S, D, H, W)) < 0.02] = -1.0  # a few invalid samples
+    cost = wp.empty((S, D, H, W), dtype=float, device="cpu")
+    ref_w = wp.array(ref, dtype=float, device="cpu")
+    wp.launch(zncc_cost_kernel, dim=(S, D, H, W), inputs=[ref_w, wp.array(warped, dtype=float, device="cpu"), r, 0.02, 0], outputs=[cost], device="cpu")
+    direct = cost.numpy()
+    m1 = wp.full((D, H, W), NO_COST, dtype=float, device="cpu")
+    m2 = wp.full((D, H, W), NO_COST, dtype=float, device="cpu")
+    rows = wp.empty((D, H, W), dtype=window_sums, device="cpu")
+    valid = np.ones((S, D, H, W), bool)
+    for s in range(S):
+        one = wp.array(warped[s : s + 1], dtype=float, device="cpu")
+        wp.launch(window_rows_kernel, dim=(D, H, W), inputs=[ref_w, one, r, 0], outputs=[rows], device="cpu")
+        wp.launch(window_zncc_kernel, dim=(D, H, W), inputs=[rows, r, 0.02, 0], outputs=[m1, m2], device="cpu")
+        bad = (warped[s] < 0).astype(np.float32)
+        import cv2
+
+        valid[s] = np.stack([cv2.dilate(b, np.ones((2 * r + 1, 2 * r + 1))) for b in bad]) == 0
+    expect = np.where(valid, direct, float(NO_COST))  # the propagation wants every sample of the window
+    srt = np.sort(expect, axis=0)
+    assert (valid.sum(0) > 0).mean() > 0.5
+    np.testing.assert_allclose(m1.numpy(), srt[0], atol=2e-5)
+    np.testing.assert_allclose(m2.numpy(), srt[1], atol=2e-5)

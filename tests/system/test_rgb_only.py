@@ -50,7 +50,11 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
 
     monkeypatch.setattr(SLAM, "run", run)
     monkeypatch.setattr(FolderSequence, "gt_depths", guarded_gt_depths)
+    propagated = spy_propagation(monkeypatch)
     m = run_sequence(sequences["none"], tmp_path / "run", short_config(), progress=False)
+    # after global BA every estimated depth target had one photo-consistency pass
+    assert len(propagated) == 3 * m["n_keyframes"], (len(propagated), m["n_keyframes"])
+    assert sum(changed for changed, _ in propagated) > 0.1 * sum(n for _, n in propagated)
     assert m["depth_source"] == "stereo" and m["jdsa"] is True and m["correspondences"] == "estimated"
     assert abs(m["sim3_scale"] - 1) < 0.02, m["sim3_scale"]
     assert m["ate_se3_rmse_m"] < 0.01 * m["path_length_m"], m  # SE(3): a metric claim
@@ -60,13 +64,33 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
     assert len(list((tmp_path / "run" / "depth").glob("keyframe_*_front.png"))) == m["n_keyframes"]
 
 
-def test_ground_truth_correspondences_reach_the_back_end_ceiling(sequences, tmp_path, capsys):
+def spy_propagation(monkeypatch) -> list:
+    """Record (pixels changed, pixels with depth) of every propagate_depth call."""
+    import numpy as np
+
+    from mcgs_warp.kernels import stereo
+
+    calls, real = [], stereo.propagate_depth
+
+    def spy(ref_image, ref_rays, depth, *args, **kwargs):
+        out = real(ref_image, ref_rays, depth, *args, **kwargs)
+        calls.append((int((out != depth).sum()), int((depth > 0).sum())))
+        return out
+
+    monkeypatch.setattr(stereo, "propagate_depth", spy)
+    return calls
+
+
+def test_ground_truth_correspondences_reach_the_back_end_ceiling(sequences, tmp_path, capsys, monkeypatch):
     """The oracle replaces only the correspondences: with exact depth the back end alone
-    is below 0.2 % of the path (SE(3)); metrics.json says which correspondences ran."""
+    is below 0.2 % of the path (SE(3)); metrics.json says which correspondences ran.
+    Exact sensor depth is its own mapping target: no photo-consistency pass touches it."""
+    propagated = spy_propagation(monkeypatch)
     rc = main(["run", "--data", str(sequences["exact"]), "--out", str(tmp_path / "gt"), "--correspondences", "ground-truth", "--config", str(write_config(tmp_path))])
     assert rc == 0
     m = json.loads((tmp_path / "gt" / "metrics.json").read_text())
     assert m["correspondences"] == "ground-truth" and m["depth_source"] == "sensor"
+    assert propagated == []
     assert m["ate_se3_rmse_m"] < 0.002 * m["path_length_m"], m
 
 
