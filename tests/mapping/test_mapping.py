@@ -18,9 +18,10 @@ def views_at(seq, frames):
 def test_fit_reaches_target_psnr(fitted, mapping_seq):
     train = fitted.evaluate(views_at(mapping_seq, KEYFRAMES))
     held = fitted.evaluate(views_at(mapping_seq, HELD_OUT))
-    # README ("Mapping"): about 30.3 dB on the training views (30.0 on CUDA, whose atomic
-    # float32 gradient sums change Adam's path) and the same on held-out frames; 26.4 at the start.
-    assert train >= 29.8, train
+    # README ("Mapping"): about 31.8 dB on the training views after 150 iterations and the same
+    # on held-out frames; 26.4 at the start. The bar leaves room for CUDA, whose atomic float32
+    # gradient sums change Adam's path (30.0 vs 30.3 dB on the CPU at 100 iterations).
+    assert train >= 30.3, train
     assert abs(held - train) < 0.5, (train, held)
     first = np.mean([r.psnr for r in fitted.history[:5]])
     assert fitted.history[-1].psnr > first + 2.0  # the optimizer does the work, not just the init
@@ -107,6 +108,22 @@ def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
     np.testing.assert_allclose(color2, hand_color, atol=2e-4)
     np.testing.assert_allclose(alpha2, hand_alpha, atol=2e-4)
     assert (alpha2 - alpha1).mean() > 0.01 and (alpha2 > 0.5).mean() > (alpha1 > 0.5).mean()
+
+
+def test_refinement_densifies_in_its_first_half_only(fitted, mapping_seq):
+    """A densify step in the second half of the refinement would hand unoptimized clones and
+    splits to the outputs: at 95 of a 100-iteration period, an 8-iteration refinement does
+    not densify at 100 (its 5th step), a 10-iteration one does (its 5th step is in its first half)."""
+    counts = {}
+    for n in (8, 10):
+        m = make_mapper(mapping_seq, MappingConfig(lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0), fitted.map.to_numpy())
+        m.iteration = 95
+        calls = []
+        m.densify_and_prune = lambda: calls.append(m.iteration)
+        joint_refinement(m, n, poses=False, exposure=False)
+        counts[n] = calls
+        assert m.iteration == 95 + n and m.cfg.densify_every == 100  # the setting is restored
+    assert counts == {8: [], 10: [100]}, counts
 
 
 def test_exposure_refinement_recovers_gain_and_bias(fitted, mapping_seq):
