@@ -18,7 +18,7 @@ def views_at(seq, frames):
 def test_fit_reaches_target_psnr(fitted, mapping_seq):
     train = fitted.evaluate(views_at(mapping_seq, KEYFRAMES))
     held = fitted.evaluate(views_at(mapping_seq, HELD_OUT))
-    # README ("Mapping"): about 31.8 dB on the training views after 150 iterations and the same
+    # README ("Mapping"): about 31.0 dB on the training views after 150 iterations and the same
     # on held-out frames; 26.4 at the start. The bar leaves room for CUDA, whose atomic float32
     # gradient sums change Adam's path (30.0 vs 30.3 dB on the CPU at 100 iterations).
     assert train >= 30.3, train
@@ -173,9 +173,13 @@ def test_densify_and_prune_counts(fitted, mapping_seq):
     accum, count = np.zeros(n), np.ones(n)
     accum[15:30] = 1.0
     m.map.set_statistics(accum, count)
+    # the fitted map may hold a few Gaussians that are prunable on their own
+    rest_opacity, rest_scale = 1 / (1 + np.exp(-d["opacity_logits"][30:])), np.exp(d["log_scales"][30:]).max(1)
+    natural = int(((rest_opacity < m.cfg.prune_opacity) | (rest_scale > m.cfg.prune_scale)).sum())
+    assert natural < 10
     rep = m.densify_and_prune()
-    assert (rep.pruned, rep.split, rep.cloned) == (15, 5, 10)
-    assert len(m.map) == n - 15 - 5 + 10 + 2 * 5
+    assert (rep.pruned, rep.split, rep.cloned) == (15 + natural, 5, 10)
+    assert len(m.map) == n - 15 - natural - 5 + 10 + 2 * 5
     assert m.adam.state["means"][0].shape[0] == 3 * len(m.map)
     after = m.map.to_numpy()
     assert np.all(1 / (1 + np.exp(-after["opacity_logits"])) >= 0.01)
