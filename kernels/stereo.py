@@ -360,13 +360,16 @@ def candidate_select_kernel(
     candidates: wp.array(dtype=wp.vec3),  # [D], candidate 0 = (0, 0, 1): the pixel's own depth
     out: wp.array(dtype=float, ndim=2),  # [H,W] m
 ):
-    """Per pixel with a depth: the candidate of lowest cost (the best source's, or the mean
-    of the two best: ``best_k``), replacing the current depth only when strictly better."""
+    """Per pixel with a depth: the candidate of lowest cost (``best_k`` 1: the best source's;
+    2: the mean of the two best, a candidate only one source sees counting the other as
+    ``NO_COST``), replacing the current depth only when strictly better, and only where some
+    source measured the current depth at all (next to a hole, or where it leaves every
+    source, a neighbour's depth would otherwise win at any cost)."""
     y, x = wp.tid()
     H = depth.shape[0]
     W = depth.shape[1]
     value = depth[y, x]
-    if value > 0.0:
+    if value > 0.0 and m1[0, y, x] < NO_COST:
         best = float(NO_COST)
         for k in range(candidates.shape[0]):
             c = m1[k, y, x]
@@ -535,14 +538,16 @@ def propagate_depth(
     """One PatchMatch-style pass over a dense depth map [H,W] (m, 0 = none) of a reference
     view with known poses: each pixel takes, among its own depth, its neighbours' depths
     and small perturbations (:func:`depth_candidates`), the one whose ``(2r+1)^2`` ZNCC
-    against the sources is best (mean of the ``best_k`` best sources: occlusion-robust).
+    against the sources is best (``best_k`` 1 or 2: the best source, or the mean of the two
+    best: occlusion-robust; see :func:`candidate_select_kernel`). Runs on ``ref_rays``'s
+    device unless ``device`` says otherwise.
     Depth edges move to where the images put them and plain surfaces take the
     photo-consistent value among nearby estimates; nothing is invented where no depth is.
     ``ref_image`` [H,W] grey in [0,1]; ``ref_rays`` [H,W] from :func:`camera_rays`;
     ``src_images``: S grey images; ``src_cams``: S :class:`Camera`; ``T_src_ref`` [S,4,4]."""
     from .launch import run_row_bands
 
-    device = wp.get_device(device)
+    device = ref_rays.device if device is None else wp.get_device(device)
     H, W = depth.shape
     S = len(src_images)
     if S == 0:
@@ -560,23 +565,20 @@ def propagate_depth(
     cand_w = wp.array(cand, dtype=wp.vec3, device=device)
     cams_w = wp.array(list(src_cams), dtype=Camera, device=device)
     T_w = wp.array(np.asarray(T_src_ref, np.float32).reshape(S, 4, 4), dtype=wp.mat44, device=device)
-    # one source at a time: memory 8 x D x H x W floats, whatever the number of sources
+    # one source at a time: memory 10 x D x H x W floats, whatever the number of sources
     warped = wp.empty((1, D, H, W), dtype=float, device=device)
     rows = wp.empty((D, H, W), dtype=window_sums, device=device)
     m1 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     m2 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     for s in range(S):
-        def band(worker, row0, n, s=s):
+        def warp_and_rows(worker, row0, n, s=s):  # the row sums read only their own rows of warped
             wp.launch(candidate_warp_kernel, dim=(1, D, n, W), inputs=[ref_rays, depth_w, cand_w, src_w, cams_w, T_w, s, row0], outputs=[warped], device=device)
-
-        def rows_band(worker, row0, n):
             wp.launch(window_rows_kernel, dim=(D, n, W), inputs=[ref_w, warped, radius, row0], outputs=[rows], device=device)
 
-        def zncc_band(worker, row0, n):
+        def zncc_band(worker, row0, n):  # reads rows above and below: after all row sums
             wp.launch(window_zncc_kernel, dim=(D, n, W), inputs=[rows, radius, min_std, row0], outputs=[m1, m2], device=device)
 
-        run_row_bands(device, H, band)  # each pass reads rows the previous one wrote around it: no fusing
-        run_row_bands(device, H, rows_band)
+        run_row_bands(device, H, warp_and_rows)
         run_row_bands(device, H, zncc_band)
     out = wp.empty((H, W), dtype=float, device=device)
     wp.launch(candidate_select_kernel, dim=(H, W), inputs=[m1, m2, best_k, depth_w, cand_w], outputs=[out], device=device)

@@ -273,8 +273,10 @@ class SLAM:
                 greys[(k, c)] = grey(buf.images[k][c], 1)
             return greys[(k, c)]
 
-        todo = [k for k in keyframes if k in self.mapper.depths]
+        todo = sorted(k for k in keyframes if k in self.mapper.depths)
         for n, k in enumerate(todo):
+            for key in [key for key in greys if key[0] < k - radius]:
+                del greys[key]  # keyframes in order: hold only the views a later one still uses
             targets = []
             for c, spec in enumerate(rig.cameras):
                 views = [(k2, c) for k2 in range(max(0, k - radius), min(len(buf), k + radius + 1)) if k2 != k]
@@ -436,8 +438,10 @@ class SLAM:
             self._solve(everything, guided_new=True)
             self.mcba.cfg.iterations, self.mcba.cfg.prior_weight = saved
             if rc.photo_depth_radius > 0 and not self.exact_depth:
+                t1 = time.perf_counter()
                 self.photo_consistent_targets(everything, rc.photo_depth_radius)
-            self.seconds["global_ba"] = time.perf_counter() - t0
+                self.seconds["photo_depth"] = time.perf_counter() - t1
+            self.seconds["global_ba"] = time.perf_counter() - t0 - self.seconds.get("photo_depth", 0.0)
             self.progress("global BA", 1, 1, force=True)
         if rc.iterations:
             def report(it, r):

@@ -169,6 +169,7 @@ def test_densify_and_prune_counts(fitted, mapping_seq):
     d["log_scales"][10:15] = np.log(3.0)  # oversized
     d["log_scales"][15:20] = np.log(0.2)  # large and hot: split
     d["log_scales"][20:30] = np.log(0.01)  # small and hot: clone
+    d["opacity_logits"][15:30] = 2.0  # opaque enough not to be pruned instead
     m.map.set_numpy(d)
     accum, count = np.zeros(n), np.ones(n)
     accum[15:30] = 1.0
