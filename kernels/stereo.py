@@ -243,14 +243,14 @@ def candidate_warp_kernel(
     src: wp.array(dtype=float, ndim=3),  # [S,Hs,Ws] grey source images
     src_cams: wp.array(dtype=Camera),  # [S]
     T_src_ref: wp.array(dtype=wp.mat44),  # [S]
-    s0: int,  # first source of this launch
+    s: int,  # the source of this launch
     row0: int,
-    warped: wp.array(dtype=float, ndim=4),  # [S',D,H,W]: source s0 + s
+    warped: wp.array(dtype=float, ndim=3),  # [D,H,W]
 ):
-    """Grey value of source ``s0 + s`` where each reference pixel lands with candidate
-    ``k``'s depth: ``factor * depth`` of the pixel ``(dx, dy)`` away (neighbour
-    propagation and perturbation, as in PatchMatch stereo); ``-1`` outside."""
-    s, k, r, x = wp.tid()
+    """Grey value of source ``s`` where each reference pixel lands with candidate ``k``'s
+    depth: ``factor * depth`` of the pixel ``(dx, dy)`` away (neighbour propagation and
+    perturbation, as in PatchMatch stereo); ``-1`` outside."""
+    k, r, x = wp.tid()
     y = r + row0
     H = depth.shape[0]
     W = depth.shape[1]
@@ -258,12 +258,12 @@ def candidate_warp_kernel(
     z = depth[wp.clamp(y + int(c[1]), 0, H - 1), wp.clamp(x + int(c[0]), 0, W - 1)] * c[2]
     value = float(-1.0)
     if z > 0.0:
-        X = wp.transform_point(T_src_ref[s0 + s], ref_rays[y, x] * z)
-        cam = src_cams[s0 + s]
+        X = wp.transform_point(T_src_ref[s], ref_rays[y, x] * z)
+        cam = src_cams[s]
         if camera_in_domain(cam, X, NEAR, FAR):
             uv = camera_project(cam, X)
-            value = sample_bilinear(src, s0 + s, uv[0], uv[1], cam.width, cam.height)
-    warped[s, k, y, x] = value
+            value = sample_bilinear(src, s, uv[0], uv[1], cam.width, cam.height)
+    warped[k, y, x] = value
 
 
 #: Window sums of the propagation's ZNCC: in-image count, valid count, a, a^2, b, b^2, ab.
@@ -273,7 +273,7 @@ window_sums = wp.types.vector(length=7, dtype=float)
 @wp.kernel
 def window_rows_kernel(
     ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
-    warped: wp.array(dtype=float, ndim=4),  # [1,D,H,W]
+    warped: wp.array(dtype=float, ndim=3),  # [D,H,W] one source
     radius: int,
     row0: int,
     rows: wp.array(dtype=window_sums, ndim=3),  # [D,H,W]
@@ -295,7 +295,7 @@ def window_rows_kernel(
         xx = x + dx
         if xx >= 0 and xx < W:
             t += 1.0
-            b = warped[0, k, y, xx]
+            b = warped[k, y, xx]
             if b >= 0.0:
                 a = ref[y, xx]
                 n += 1.0
@@ -566,13 +566,13 @@ def propagate_depth(
     cams_w = wp.array(list(src_cams), dtype=Camera, device=device)
     T_w = wp.array(np.asarray(T_src_ref, np.float32).reshape(S, 4, 4), dtype=wp.mat44, device=device)
     # one source at a time: memory 10 x D x H x W floats, whatever the number of sources
-    warped = wp.empty((1, D, H, W), dtype=float, device=device)
+    warped = wp.empty((D, H, W), dtype=float, device=device)
     rows = wp.empty((D, H, W), dtype=window_sums, device=device)
     m1 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     m2 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     for s in range(S):
         def warp_and_rows(worker, row0, n, s=s):  # the row sums read only their own rows of warped
-            wp.launch(candidate_warp_kernel, dim=(1, D, n, W), inputs=[ref_rays, depth_w, cand_w, src_w, cams_w, T_w, s, row0], outputs=[warped], device=device)
+            wp.launch(candidate_warp_kernel, dim=(D, n, W), inputs=[ref_rays, depth_w, cand_w, src_w, cams_w, T_w, s, row0], outputs=[warped], device=device)
             wp.launch(window_rows_kernel, dim=(D, n, W), inputs=[ref_w, warped, radius, row0], outputs=[rows], device=device)
 
         def zncc_band(worker, row0, n):  # reads rows above and below: after all row sums

@@ -437,12 +437,12 @@ class SLAM:
                 self.mcba.cfg.prior_weight = 0.0
             self._solve(everything, guided_new=True)
             self.mcba.cfg.iterations, self.mcba.cfg.prior_weight = saved
+            self.seconds["global_ba"] = time.perf_counter() - t0
+            self.progress("global BA", 1, 1, force=True)
             if rc.photo_depth_radius > 0 and not self.exact_depth:
                 t1 = time.perf_counter()
                 self.photo_consistent_targets(everything, rc.photo_depth_radius)
                 self.seconds["photo_depth"] = time.perf_counter() - t1
-            self.seconds["global_ba"] = time.perf_counter() - t0 - self.seconds.get("photo_depth", 0.0)
-            self.progress("global BA", 1, 1, force=True)
         if rc.iterations:
             def report(it, r):
                 self.progress("refining", it + 1, rc.iterations, f"psnr {r.psnr:.1f} dB")

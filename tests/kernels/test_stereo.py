@@ -199,7 +199,7 @@ def test_separable_window_zncc_equals_the_direct_window_sum():
     rows = wp.empty((D, H, W), dtype=window_sums, device="cpu")
     valid = np.ones((S, D, H, W), bool)
     for s in range(S):
-        one = wp.array(warped[s : s + 1], dtype=float, device="cpu")
+        one = wp.array(warped[s], dtype=float, device="cpu")
         wp.launch(window_rows_kernel, dim=(D, H, W), inputs=[ref_w, one, r, 0], outputs=[rows], device="cpu")
         wp.launch(window_zncc_kernel, dim=(D, H, W), inputs=[rows, r, 0.02, 0], outputs=[m1, m2], device="cpu")
         bad = (warped[s] < 0).astype(np.float32)
