@@ -59,12 +59,13 @@ if __name__ == "__main__":
         print(f"done: {name} ({m['seconds_total']:.0f} s)", flush=True)
     (out / "ablation.json").write_text(json.dumps([{"variant": n, **m} for n, _r, _c, m in rows], indent=2))
     print()
-    print("| variant | SE(3) ATE mm | % of path | Sim(3) ATE mm | Sim(3) scale | PSNR dB | depth L1 m | s |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| variant | SE(3) ATE mm | % of path | Sim(3) ATE mm | Sim(3) scale | PSNR dB | depth L1 m | prior L1 m, as given -> after JDSA | s |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, _r, _c, m in rows:
         se3 = f"{1000 * m['ate_se3_rmse_m']:.1f}" if "1 camera" not in name else "(unobservable)"
         pct = f"{100 * m['ate_se3_rmse_m'] / m['path_length_m']:.2f}" if "1 camera" not in name else "-"
-        print(f"| {name} | {se3} | {pct} | {1000 * m['ate_rmse_m']:.1f} | {m['sim3_scale']:.3f} | {m['psnr_db']:.2f} | {m['depth_l1_m']:.3f} | {m['seconds_total']:.0f} |")
+        prior = f"{m['prior_l1_m']:.3f} -> {m['prior_jdsa_l1_m']:.3f}" if m.get("prior_l1_m") is not None else "-"
+        print(f"| {name} | {se3} | {pct} | {1000 * m['ate_rmse_m']:.1f} | {m['sim3_scale']:.3f} | {m['psnr_db']:.2f} | {m['depth_l1_m']:.3f} | {prior} | {m['seconds_total']:.0f} |")
     print()
     by_name = {n: m for n, _r, _c, m in rows}
     for est, gt in (("RGB-D exact depth", "RGB-D exact depth, GT corr."), ("RGB + mono prior", "RGB + mono prior, GT corr."), ("RGB only (stereo)", "RGB only, GT corr.")):

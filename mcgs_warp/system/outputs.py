@@ -8,7 +8,8 @@
 * ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned) and path length when ground truth
   exists, PSNR, SSIM over the keyframe views, depth L1 against the sequence's exact depth
   (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
-  correspondences used, counts and timings
+  correspondences used, for an inexact prior its error before and after JDSA's scale grids,
+  counts and timings
 * ``plots/trajectory.png`` (top view, estimate vs ground truth), ``plots/mapping.png``
   (loss and PSNR per mapping iteration)
 * ``config.yaml``: the resolved run configuration; ``rig.yaml`` and ``keyframes.txt``
@@ -56,6 +57,33 @@ def keyframe_views(slam):
             yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
 
 
+def prior_errors(slam) -> tuple[float | None, float | None]:
+    """Mean |depth - exact depth| (m) of an inexact metric prior (stereo, monocular-style) on
+    MCBA's grid, as given and times JDSA's scale grids (eq. 5), over every keyframe view:
+    what JDSA did to the prior. ``(None, None)`` without such a prior or without exact depth."""
+    from ..ba.jdsa import scale_field
+    from ..frontend.depth import grid_depth
+
+    buf, seq = slam.buf, slam.seq
+    if not slam.prior.metric or slam.exact_depth:
+        return None, None
+    raw, scaled = [], []
+    for k in range(len(buf)):
+        gt = seq.gt_depths(buf.frame_index[k])
+        if gt is None:
+            return None, None
+        exact = grid_depth(gt, seq.rig, buf.stride, (buf.h, buf.w))
+        prior = buf.depth_prior[k]
+        for c in range(len(seq.rig)):
+            ok = (exact[c] > 0) & (prior[c] > 0)
+            if ok.any():
+                raw.append(np.abs(prior[c] - exact[c])[ok])
+                scaled.append(np.abs(prior[c] * scale_field(buf.scales[k, c], buf.h, buf.w) - exact[c])[ok])
+    if not raw:
+        return None, None
+    return float(np.concatenate(raw).mean()), float(np.concatenate(scaled).mean())
+
+
 def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     out = Path(out_dir)
     seq, buf, rig = slam.seq, slam.buf, slam.seq.rig
@@ -93,6 +121,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
             vmax = float(np.percentile(sensor[sensor > 0], 95)) if sensor is not None and (sensor > 0).any() else float(np.percentile(dep[dep > 0], 95)) if (dep > 0).any() else 1.0
             write_image(out / "renders" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", np.concatenate([img, col, depth_colormap(dep, vmax)], axis=1))
 
+    prior_l1, prior_jdsa_l1 = prior_errors(slam)
     metrics = {
         "ate_rmse_m": None,
         "path_length_m": float(np.linalg.norm(np.diff(traj.positions, axis=0), axis=1).sum()),
@@ -100,6 +129,8 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "ssim": float(np.mean(ssims)),
         "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
         "depth_source": slam.prior.name,
+        "prior_l1_m": prior_l1,  # the inexact prior against exact depth, before JDSA ...
+        "prior_jdsa_l1_m": prior_jdsa_l1,  # ... and after its scale grids (equal with --no-jdsa)
         "jdsa": slam.jdsa_active,
         "correspondences": slam.cfg.tracking.correspondences,
         "n_gaussians": len(slam.mapper.map),

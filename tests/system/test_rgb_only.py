@@ -24,7 +24,7 @@ def short_config(correspondences="estimated"):
 @pytest.fixture(scope="module")
 def sequences(tmp_path_factory):
     root = tmp_path_factory.mktemp("rgb_only")
-    return {m: generate(root / m, n_cameras=3, n_frames=12, seed=0, progress=False, depth=m).root for m in ("none", "exact")}
+    return {m: generate(root / m, n_cameras=3, n_frames=12, seed=0, progress=False, depth=m).root for m in ("none", "exact", "mono")}
 
 
 def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
@@ -56,12 +56,28 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
     assert len(propagated) == 3 * m["n_keyframes"], (len(propagated), m["n_keyframes"])
     assert sum(changed for changed, _ in propagated) > 0.1 * sum(n for _, n in propagated)
     assert m["depth_source"] == "stereo" and m["jdsa"] is True and m["correspondences"] == "estimated"
+    assert m["prior_jdsa_l1_m"] is not None and m["prior_l1_m"] is not None  # the stereo prior is inexact too
     assert abs(m["sim3_scale"] - 1) < 0.02, m["sim3_scale"]
     assert m["ate_se3_rmse_m"] < 0.01 * m["path_length_m"], m  # SE(3): a metric claim
     # against gt/, which the run never read: real geometry, not a plane at the start depth
     # (which scores above 1.5 m here); the far end of the corridor dominates what is left
     assert m["depth_l1_m"] < 0.8, m["depth_l1_m"]
     assert len(list((tmp_path / "run" / "depth").glob("keyframe_*_front.png"))) == m["n_keyframes"]
+
+
+def test_jdsa_rescales_a_monocular_style_prior(sequences, tmp_path):
+    """A folder written by ``synth --depth mono`` is an inexact prior (exact depth times a
+    smooth scale field between 0.8 and 1.25): JDSA's scale grids take most of that error out
+    (metrics.json reports the prior's error before and after them); with JDSA off the prior
+    stays as given. Exact sensor depth has no such prior to report."""
+    on = run_sequence(sequences["mono"], tmp_path / "on", short_config(), progress=False)
+    off = run_sequence(sequences["mono"], tmp_path / "off", short_config(), jdsa=False, progress=False)
+    assert on["depth_source"] == off["depth_source"] == "sensor (inexact prior)"
+    assert on["jdsa"] is True and off["jdsa"] is False
+    assert on["prior_l1_m"] > 0.1, on  # the scale field's error is there to remove
+    assert on["prior_jdsa_l1_m"] < 0.6 * on["prior_l1_m"], on
+    assert off["prior_jdsa_l1_m"] == pytest.approx(off["prior_l1_m"], rel=1e-6), off  # scale grids stay 1
+    assert abs(on["sim3_scale"] - 1) < 0.03 and on["ate_se3_rmse_m"] < 0.01 * on["path_length_m"], on
 
 
 def spy_propagation(monkeypatch) -> list:
