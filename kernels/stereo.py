@@ -35,7 +35,9 @@ poses are known, a dense depth map is improved by one PatchMatch-style pass (Ble
 BMVC 2011; Galliani et al., ICCV 2015): every pixel tries its neighbours' depths and small
 changes of its own (:func:`candidate_warp_kernel`), scored by ZNCC with separable window
 sums (:func:`window_rows_kernel`, :func:`window_zncc_kernel`), and keeps the best
-(:func:`candidate_select_kernel`).
+(:func:`candidate_select_kernel`). :func:`consistent_depth` then keeps only the depths that
+other views' depth maps confirm (geometric consistency, as multi-view stereo fusion does:
+Schönberger et al., ECCV 2016; Yao et al., ECCV 2018), :func:`depth_agreement_kernel`.
 """
 
 from __future__ import annotations
@@ -199,6 +201,22 @@ def select_kernel(
     confidence[y, x] = conf
 
 
+@wp.func
+def nearest_pixel(cam: Camera, X: wp.vec3):
+    """``(u, v, inside)``: the pixel nearest to where ``X`` (camera frame, m) projects, and
+    1 if ``X`` is in the camera's domain and that pixel in its image (else 0)."""
+    u = int(-1)
+    v = int(-1)
+    inside = int(0)
+    if camera_in_domain(cam, X, NEAR, FAR):
+        uv = camera_project(cam, X)
+        u = int(wp.round(uv[0]))
+        v = int(wp.round(uv[1]))
+        if u >= 0 and v >= 0 and u < cam.width and v < cam.height:
+            inside = 1
+    return u, v, inside
+
+
 @wp.kernel
 def lr_check_kernel(
     rays_a: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] of view a
@@ -217,20 +235,15 @@ def lr_check_kernel(
     if ra <= 0.0:
         confidence_a[y, x] = 0.0
         return
-    Xb = wp.transform_point(T_b_a, rays_a[y, x] / ra)
-    ok = camera_in_domain(cam_b, Xb, NEAR, FAR)
+    ub, vb, inside = nearest_pixel(cam_b, wp.transform_point(T_b_a, rays_a[y, x] / ra))
     err = float(1.0e9)
-    if ok:
-        pb = camera_project(cam_b, Xb)
-        ub = int(wp.round(pb[0]))
-        vb = int(wp.round(pb[1]))
-        if ub >= 0 and vb >= 0 and ub < cam_b.width and vb < cam_b.height:
-            rb = inv_depth_b[vb, ub]
-            if rb > 0.0:
-                Xa = wp.transform_point(T_a_b, rays_b[vb, ub] / rb)
-                if camera_in_domain(cam_a, Xa, NEAR, FAR):
-                    pa = camera_project(cam_a, Xa)
-                    err = wp.length(pa - wp.vec2(float(x), float(y)))
+    if inside == 1:
+        rb = inv_depth_b[vb, ub]
+        if rb > 0.0:
+            Xa = wp.transform_point(T_a_b, rays_b[vb, ub] / rb)
+            if camera_in_domain(cam_a, Xa, NEAR, FAR):
+                pa = camera_project(cam_a, Xa)
+                err = wp.length(pa - wp.vec2(float(x), float(y)))
     if err > max_px:
         confidence_a[y, x] = 0.0
 
@@ -583,3 +596,50 @@ def propagate_depth(
     out = wp.empty((H, W), dtype=float, device=device)
     wp.launch(candidate_select_kernel, dim=(H, W), inputs=[m1, m2, best_k, depth_w, cand_w], outputs=[out], device=device)
     return out.numpy()
+
+
+@wp.kernel
+def depth_agreement_kernel(
+    ref_rays: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] unit-depth rays of the reference
+    depth: wp.array(dtype=float, ndim=2),  # [H,W] reference depth (m, 0 = none)
+    src_rays: wp.array(dtype=wp.vec3, ndim=2),  # [Hs,Ws] unit-depth rays of the source
+    src_depth: wp.array(dtype=float, ndim=2),  # [Hs,Ws] source depth (m, 0 = none)
+    src_cam: Camera,
+    T_src_ref: wp.mat44,
+    T_ref_src: wp.mat44,
+    tol: float,
+    count: wp.array(dtype=wp.int32, ndim=2),  # [H,W] += 1 where the source agrees
+):
+    """Does the source's depth map put the point where the reference's does? The reference
+    pixel's point goes into the source, takes the source depth at the nearest pixel there,
+    and comes back: it agrees when it lands within ``tol`` (relative) of the reference
+    depth along the reference ray (``|X| / |ray|``: depth or range, whatever the model)."""
+    y, x = wp.tid()
+    d = depth[y, x]
+    if d > 0.0:
+        u, v, inside = nearest_pixel(src_cam, wp.transform_point(T_src_ref, ref_rays[y, x] * d))
+        if inside == 1:
+            d2 = src_depth[v, u]
+            if d2 > 0.0:
+                back = wp.transform_point(T_ref_src, src_rays[v, u] * d2)
+                if wp.abs(wp.length(back) / wp.length(ref_rays[y, x]) - d) < tol * d:
+                    count[y, x] = count[y, x] + 1
+
+
+def consistent_depth(ref_rays: wp.array, depth: np.ndarray, src_rays, src_depths, src_cams, T_src_ref: np.ndarray, min_views: int = 2, tol: float = 0.05, device=None) -> np.ndarray:
+    """``depth`` [H,W] (m, 0 = none) with 0 wherever fewer than ``min_views`` of the S
+    sources confirm it (:func:`depth_agreement_kernel`): depths no other view's map
+    reproduces, such as outliers in front of a far wall or a foreground edge spread onto
+    the background in one view only, are dropped rather than trusted. ``src_rays``: S
+    [Hs,Ws] ray arrays (:func:`camera_rays`), ``src_depths``: S depth maps [Hs,Ws],
+    ``src_cams``: S :class:`Camera`, ``T_src_ref`` [S,4,4] reference camera -> source."""
+    device = ref_rays.device if device is None else wp.get_device(device)
+    depth = np.asarray(depth, np.float32)
+    H, W = depth.shape
+    depth_w = wp.array(np.ascontiguousarray(depth), dtype=float, device=device)
+    count = wp.zeros((H, W), dtype=wp.int32, device=device)
+    for rays_s, d_s, cam_s, T in zip(src_rays, src_depths, src_cams, np.asarray(T_src_ref, np.float64).reshape(-1, 4, 4)):
+        M, M_inv = (wp.mat44(*m.astype(np.float32).ravel()) for m in (T, np.linalg.inv(T)))
+        d_w = wp.array(np.ascontiguousarray(d_s, dtype=np.float32), dtype=float, device=device)
+        wp.launch(depth_agreement_kernel, dim=(H, W), inputs=[ref_rays, depth_w, rays_s, d_w, cam_s, M, M_inv, float(tol)], outputs=[count], device=device)
+    return np.where(count.numpy() >= min_views, depth, 0.0).astype(np.float32)

@@ -252,15 +252,18 @@ class SLAM:
             out.append(full)
         return out
 
-    def photo_consistent_targets(self, keyframes, radius: int) -> None:
+    def photo_consistent_targets(self, keyframes, radius: int, min_views: int = 0) -> None:
         """Sharpen estimated mapping targets with the solved poses: one PatchMatch-style pass
         (:func:`~mcgs_warp.kernels.stereo.propagate_depth`) per view against the same camera
         up to ``radius`` keyframes either side and the rig's overlapping cameras at the same
         time. MCBA's depth lives on a grid of 8 px cells and is upsampled, so depth edges
         spread over a cell and plain surfaces carry the grid's error; each pixel now takes
-        the nearby depth (or a 2-5 % change of its own) that its 9x9 window matches best."""
+        the nearby depth (or a 2-5 % change of its own) that its 9x9 window matches best.
+        Then, with ``min_views`` > 0, a target pixel is kept only where at least that many of
+        those views' new targets put the point within 5 % of it
+        (:func:`~mcgs_warp.kernels.stereo.consistent_depth`); the rest get no depth target."""
         from ..frontend.stereo import grey
-        from ..kernels.stereo import propagate_depth
+        from ..kernels.stereo import consistent_depth, propagate_depth
 
         buf, rig = self.buf, self.seq.rig
         poses, rays = buf.get_poses(), buf.full_rays
@@ -274,18 +277,33 @@ class SLAM:
             return greys[(k, c)]
 
         todo = sorted(k for k in keyframes if k in self.mapper.depths)
+
+        def views_of(k, c, mapped: bool = False):
+            """The views (keyframe, camera) that judge view (k, c), and T_src_ref [S,4,4]."""
+            views = [(k2, c) for k2 in range(max(0, k - radius), min(len(buf), k + radius + 1)) if k2 != k]
+            views += [(k, b) for a, b in self.stereo.pairs if a == c]
+            views = [v for v in views if v[0] in self.mapper.depths] if mapped else views
+            return views, np.stack([np.linalg.inv(T_w_c[v]) @ T_w_c[(k, c)] for v in views]) if views else np.zeros((0, 4, 4))
+
         for n, k in enumerate(todo):
             for key in [key for key in greys if key[0] < k - radius]:
                 del greys[key]  # keyframes in order: hold only the views a later one still uses
             targets = []
-            for c, spec in enumerate(rig.cameras):
-                views = [(k2, c) for k2 in range(max(0, k - radius), min(len(buf), k + radius + 1)) if k2 != k]
-                views += [(k, b) for a, b in self.stereo.pairs if a == c]
-                T_src_ref = np.stack([np.linalg.inv(T_w_c[v]) @ T_w_c[(k, c)] for v in views]) if views else np.zeros((0, 4, 4))
+            for c in range(len(rig)):
+                views, T_src_ref = views_of(k, c)
                 depth = np.asarray(self.mapper.depths[k][c], np.float32)
                 targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, device=buf.device))
             self.mapper.depths[k] = targets
             self.progress("photo depth", n + 1, len(todo))
+        if min_views <= 0:
+            return
+        kept = {}  # judged against the other views' unfiltered targets, then replaced together
+        for k in todo:
+            kept[k] = []
+            for c in range(len(rig)):
+                views, T_src_ref = views_of(k, c, mapped=True)
+                kept[k].append(consistent_depth(rays[c], self.mapper.depths[k][c], [rays[v[1]] for v in views], [self.mapper.depths[v[0]][v[1]] for v in views], [cams[v[1]] for v in views], T_src_ref, min_views=min_views, device=buf.device))
+        self.mapper.depths.update(kept)
 
     def _measured_weight(self, keyframes) -> dict:
         """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or
@@ -441,7 +459,7 @@ class SLAM:
             self.progress("global BA", 1, 1, force=True)
             if rc.photo_depth_radius > 0 and not self.exact_depth:
                 t1 = time.perf_counter()
-                self.photo_consistent_targets(everything, rc.photo_depth_radius)
+                self.photo_consistent_targets(everything, rc.photo_depth_radius, rc.photo_depth_min_views)
                 self.seconds["photo_depth"] = time.perf_counter() - t1
         if rc.iterations:
             def report(it, r):

@@ -50,11 +50,14 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
 
     monkeypatch.setattr(SLAM, "run", run)
     monkeypatch.setattr(FolderSequence, "gt_depths", guarded_gt_depths)
-    propagated = spy_propagation(monkeypatch)
+    propagated, filtered = spy_propagation(monkeypatch), spy_propagation(monkeypatch, "consistent_depth")
     m = run_sequence(sequences["none"], tmp_path / "run", short_config(), progress=False)
-    # after global BA every estimated depth target had one photo-consistency pass
-    assert len(propagated) == 3 * m["n_keyframes"], (len(propagated), m["n_keyframes"])
+    # after global BA every estimated depth target had one photo-consistency pass, then a
+    # geometric consistency check against the other views that drops some of its pixels
+    assert len(propagated) == len(filtered) == 3 * m["n_keyframes"], (len(propagated), len(filtered), m["n_keyframes"])
     assert sum(changed for changed, _ in propagated) > 0.1 * sum(n for _, n in propagated)
+    dropped = sum(changed for changed, _ in filtered) / sum(n for _, n in filtered)
+    assert 0.01 < dropped < 0.5, dropped
     assert m["depth_source"] == "stereo" and m["jdsa"] is True and m["correspondences"] == "estimated"
     assert m["prior_jdsa_l1_m"] is not None and m["prior_l1_m"] is not None  # the stereo prior is inexact too
     assert abs(m["sim3_scale"] - 1) < 0.02, m["sim3_scale"]
@@ -80,20 +83,23 @@ def test_jdsa_rescales_a_monocular_style_prior(sequences, tmp_path):
     assert abs(on["sim3_scale"] - 1) < 0.03 and on["ate_se3_rmse_m"] < 0.01 * on["path_length_m"], on
 
 
-def spy_propagation(monkeypatch) -> list:
-    """Record (pixels changed, pixels with depth) of every propagate_depth call."""
+def spy_propagation(monkeypatch, name: str = "propagate_depth") -> list:
+    """Record (pixels changed, pixels with depth) of every call of ``kernels.stereo.<name>``
+    (``propagate_depth`` or ``consistent_depth``)."""
     import numpy as np
 
     from mcgs_warp.kernels import stereo
 
-    calls, real = [], stereo.propagate_depth
+    calls, real = [], getattr(stereo, name)
+    at = {"propagate_depth": 2, "consistent_depth": 1}[name]  # position of the depth argument
 
-    def spy(ref_image, ref_rays, depth, *args, **kwargs):
-        out = real(ref_image, ref_rays, depth, *args, **kwargs)
+    def spy(*args, **kwargs):
+        out = real(*args, **kwargs)
+        depth = np.asarray(args[at])
         calls.append((int((out != depth).sum()), int((depth > 0).sum())))
         return out
 
-    monkeypatch.setattr(stereo, "propagate_depth", spy)
+    monkeypatch.setattr(stereo, name, spy)
     return calls
 
 
@@ -101,12 +107,12 @@ def test_ground_truth_correspondences_reach_the_back_end_ceiling(sequences, tmp_
     """The oracle replaces only the correspondences: with exact depth the back end alone
     is below 0.2 % of the path (SE(3)); metrics.json says which correspondences ran.
     Exact sensor depth is its own mapping target: no photo-consistency pass touches it."""
-    propagated = spy_propagation(monkeypatch)
+    propagated, filtered = spy_propagation(monkeypatch), spy_propagation(monkeypatch, "consistent_depth")
     rc = main(["run", "--data", str(sequences["exact"]), "--out", str(tmp_path / "gt"), "--correspondences", "ground-truth", "--config", str(write_config(tmp_path))])
     assert rc == 0
     m = json.loads((tmp_path / "gt" / "metrics.json").read_text())
     assert m["correspondences"] == "ground-truth" and m["depth_source"] == "sensor"
-    assert propagated == []
+    assert propagated == [] and filtered == []
     assert m["ate_se3_rmse_m"] < 0.002 * m["path_length_m"], m
 
 
