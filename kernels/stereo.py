@@ -35,7 +35,9 @@ poses are known, a dense depth map is improved by one PatchMatch-style pass (Ble
 BMVC 2011; Galliani et al., ICCV 2015): every pixel tries its neighbours' depths and small
 changes of its own (:func:`candidate_warp_kernel`), scored by ZNCC with separable window
 sums (:func:`window_rows_kernel`, :func:`window_zncc_kernel`), and keeps the best
-(:func:`candidate_select_kernel`). :func:`consistent_depth` then keeps only the depths that
+(:func:`candidate_select_kernel`); at depth edges the best few are re-scored with
+colour-adaptive support weights (:func:`rescore_pick_kernel`, :func:`adaptive_window_kernel`,
+:func:`rescore_select_kernel`; Yoon & Kweon, PAMI 2006). :func:`consistent_depth` then keeps only the depths that
 other views' depth maps confirm (geometric consistency, as multi-view stereo fusion does:
 Schönberger et al., ECCV 2016; Yao et al., ECCV 2018), :func:`depth_agreement_kernel`.
 """
@@ -248,6 +250,26 @@ def lr_check_kernel(
         confidence_a[y, x] = 0.0
 
 
+@wp.func
+def candidate_depth(depth: wp.array(dtype=float, ndim=2), cand: wp.vec3, y: int, x: int):
+    """Depth (m) candidate ``cand = (dx, dy, factor)`` proposes for pixel (x, y): ``factor``
+    times the depth ``(dx, dy)`` away, clamped to the image (0 = none there)."""
+    H = depth.shape[0]
+    W = depth.shape[1]
+    return depth[wp.clamp(y + int(cand[1]), 0, H - 1), wp.clamp(x + int(cand[0]), 0, W - 1)] * cand[2]
+
+
+@wp.func
+def keep_two_lowest(c: float, m1: wp.array(dtype=float, ndim=3), m2: wp.array(dtype=float, ndim=3), k: int, y: int, x: int):
+    """Fold one source's cost ``c`` into the lowest (``m1``) and second lowest (``m2``)."""
+    a = m1[k, y, x]
+    if c < a:
+        m2[k, y, x] = a
+        m1[k, y, x] = c
+    elif c < m2[k, y, x]:
+        m2[k, y, x] = c
+
+
 @wp.kernel
 def candidate_warp_kernel(
     ref_rays: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] unit-depth rays of the reference
@@ -265,10 +287,8 @@ def candidate_warp_kernel(
     perturbation, as in PatchMatch stereo); ``-1`` outside."""
     k, r, x = wp.tid()
     y = r + row0
-    H = depth.shape[0]
-    W = depth.shape[1]
     c = candidates[k]
-    z = depth[wp.clamp(y + int(c[1]), 0, H - 1), wp.clamp(x + int(c[0]), 0, W - 1)] * c[2]
+    z = candidate_depth(depth, c, y, x)
     value = float(-1.0)
     if z > 0.0:
         X = wp.transform_point(T_src_ref[s], ref_rays[y, x] * z)
@@ -356,12 +376,7 @@ def window_zncc_kernel(
     c = float(NO_COST)
     if n >= t and n > 1.0:
         c = zncc_cost(n, sa, saa, sb, sbb, sab, min_std)
-    a = m1[k, y, x]
-    if c < a:
-        m2[k, y, x] = a
-        m1[k, y, x] = c
-    elif c < m2[k, y, x]:
-        m2[k, y, x] = c
+    keep_two_lowest(c, m1, m2, k, y, x)
 
 
 @wp.kernel
@@ -379,8 +394,6 @@ def candidate_select_kernel(
     source measured the current depth at all (next to a hole, or where it leaves every
     source, a neighbour's depth would otherwise win at any cost)."""
     y, x = wp.tid()
-    H = depth.shape[0]
-    W = depth.shape[1]
     value = depth[y, x]
     if value > 0.0 and m1[0, y, x] < NO_COST:
         best = float(NO_COST)
@@ -389,11 +402,144 @@ def candidate_select_kernel(
             if best_k > 1:
                 c = 0.5 * (c + m2[k, y, x])  # a candidate only one source confirms pays for it
             cand = candidates[k]
-            z = depth[wp.clamp(y + int(cand[1]), 0, H - 1), wp.clamp(x + int(cand[0]), 0, W - 1)] * cand[2]
+            z = candidate_depth(depth, cand, y, x)
             if z > 0.0:
                 if c < best:
                     best = c
                     value = z
+    out[y, x] = value
+
+
+@wp.kernel
+def rescore_pick_kernel(
+    m1: wp.array(dtype=float, ndim=3),  # [D,H,W] from window_zncc_kernel
+    m2: wp.array(dtype=float, ndim=3),
+    depth: wp.array(dtype=float, ndim=2),  # [H,W] m
+    candidates: wp.array(dtype=wp.vec3),  # [D]
+    at_edge: wp.array(dtype=wp.int32, ndim=2),  # [H,W] 1 where the depth window straddles an edge
+    picked: wp.array(dtype=wp.int32, ndim=3),  # [K,H,W] candidate indices, -1 = none
+):
+    """Per pixel at a depth edge whose own depth some source measured: its own depth
+    (candidate 0) and the ``K - 1`` other candidates of lowest separable cost (mean of the
+    two best sources), to be re-scored by :func:`adaptive_window_kernel`."""
+    y, x = wp.tid()
+    K = picked.shape[0]
+    for j in range(K):
+        picked[j, y, x] = -1
+    if at_edge[y, x] == 0 or depth[y, x] <= 0.0 or m1[0, y, x] >= NO_COST:
+        return
+    picked[0, y, x] = 0
+    for j in range(1, K):
+        best = float(NO_COST)
+        bk = int(-1)
+        for k in range(1, candidates.shape[0]):
+            cand = candidates[k]
+            z = candidate_depth(depth, cand, y, x)
+            c = 0.5 * (m1[k, y, x] + m2[k, y, x])
+            taken = int(0)
+            for i in range(1, j):
+                if picked[i, y, x] == k:
+                    taken = 1
+            if z > 0.0 and taken == 0 and c < best:
+                best = c
+                bk = k
+        picked[j, y, x] = bk
+
+
+@wp.kernel
+def adaptive_window_kernel(
+    ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
+    colour: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] RGB reference in [0,1]: the support weights
+    ref_rays: wp.array(dtype=wp.vec3, ndim=2),  # [H,W]
+    depth: wp.array(dtype=float, ndim=2),  # [H,W] m
+    candidates: wp.array(dtype=wp.vec3),  # [D]
+    picked: wp.array(dtype=wp.int32, ndim=3),  # [K,H,W] from rescore_pick_kernel
+    src: wp.array(dtype=float, ndim=3),  # [S,Hs,Ws] grey sources
+    src_cams: wp.array(dtype=Camera),  # [S]
+    T_src_ref: wp.array(dtype=wp.mat44),  # [S]
+    s: int,  # the source of this launch
+    radius: int,
+    gamma_colour: float,  # L1 RGB difference at which a window pixel's weight falls by e
+    gamma_distance: float,  # px, likewise for its distance from the centre
+    min_std: float,
+    row0: int,
+    a1: wp.array(dtype=float, ndim=3),  # [K,H,W] lowest cost over the sources so far
+    a2: wp.array(dtype=float, ndim=3),  # [K,H,W] second lowest
+):
+    """``1 - ZNCC`` of a picked candidate with adaptive support weights (Yoon & Kweon, PAMI
+    2006): the whole window at the candidate's depth, each pixel weighted by its colour
+    likeness to the centre and its distance, so that at a depth edge the surface the centre
+    belongs to decides, not the one across the edge (the fattening of plain windows)."""
+    j, r, x = wp.tid()
+    y = r + row0
+    k = picked[j, y, x]
+    if k < 0:
+        return
+    H = depth.shape[0]
+    W = depth.shape[1]
+    cand = candidates[k]
+    z = candidate_depth(depth, cand, y, x)
+    cam = src_cams[s]
+    T = T_src_ref[s]
+    centre = colour[y, x]
+    t = float(0.0)  # weight of the in-image window, then of its valid samples and their moments
+    n = float(0.0)
+    sa = float(0.0)
+    saa = float(0.0)
+    sb = float(0.0)
+    sbb = float(0.0)
+    sab = float(0.0)
+    for dy in range(-radius, radius + 1):
+        yy = y + dy
+        for dx in range(-radius, radius + 1):
+            xx = x + dx
+            if yy >= 0 and yy < H and xx >= 0 and xx < W:
+                d = colour[yy, xx] - centre
+                w = wp.exp(-(wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2])) / gamma_colour - wp.sqrt(float(dx * dx + dy * dy)) / gamma_distance)
+                t += w
+                X = wp.transform_point(T, ref_rays[yy, xx] * z)
+                if camera_in_domain(cam, X, NEAR, FAR):
+                    uv = camera_project(cam, X)
+                    b = sample_bilinear(src, s, uv[0], uv[1], cam.width, cam.height)
+                    if b >= 0.0:
+                        a = ref[yy, xx]
+                        n += w
+                        sa += w * a
+                        saa += w * a * a
+                        sb += w * b
+                        sbb += w * b * b
+                        sab += w * a * b
+    c = float(NO_COST)
+    if n >= 0.999 * t and n > 0.0:
+        c = zncc_cost(n, sa, saa, sb, sbb, sab, min_std)
+    keep_two_lowest(c, a1, a2, j, y, x)
+
+
+@wp.kernel
+def rescore_select_kernel(
+    a1: wp.array(dtype=float, ndim=3),  # [K,H,W]
+    a2: wp.array(dtype=float, ndim=3),
+    picked: wp.array(dtype=wp.int32, ndim=3),  # [K,H,W]
+    depth: wp.array(dtype=float, ndim=2),  # [H,W] m
+    candidates: wp.array(dtype=wp.vec3),  # [D]
+    out: wp.array(dtype=float, ndim=2),  # [H,W] m: overwritten where re-scored
+):
+    """Where the own depth was re-scored at all: the picked candidate of lowest adaptive
+    cost (mean of the two best sources), replacing the separable pass's choice."""
+    y, x = wp.tid()
+    if picked[0, y, x] < 0 or a1[0, y, x] >= NO_COST:
+        return
+    best = float(NO_COST)
+    value = depth[y, x]
+    for j in range(picked.shape[0]):
+        k = picked[j, y, x]
+        if k >= 0:
+            c = 0.5 * (a1[j, y, x] + a2[j, y, x])
+            cand = candidates[k]
+            z = candidate_depth(depth, cand, y, x)
+            if z > 0.0 and c < best:
+                best = c
+                value = z
     out[y, x] = value
 
 
@@ -546,6 +692,11 @@ def propagate_depth(
     radius: int = 4,
     min_std: float = 0.005,
     best_k: int = 2,
+    ref_colour: np.ndarray | None = None,
+    rescore: int = 4,
+    edge_ratio: float = 1.2,
+    gamma_colour: float = 0.1,
+    gamma_distance: float = 4.5,
     device=None,
 ) -> np.ndarray:
     """One PatchMatch-style pass over a dense depth map [H,W] (m, 0 = none) of a reference
@@ -556,6 +707,10 @@ def propagate_depth(
     device unless ``device`` says otherwise.
     Depth edges move to where the images put them and plain surfaces take the
     photo-consistent value among nearby estimates; nothing is invented where no depth is.
+    With ``ref_colour`` (RGB [H,W,3] in [0,1]), pixels whose window straddles a depth edge
+    (depths spanning more than ``edge_ratio``) re-score their own depth and the
+    ``rescore - 1`` best other candidates with colour-adaptive support weights
+    (:func:`adaptive_window_kernel`), against the foreground fattening of plain windows.
     ``ref_image`` [H,W] grey in [0,1]; ``ref_rays`` [H,W] from :func:`camera_rays`;
     ``src_images``: S grey images; ``src_cams``: S :class:`Camera`; ``T_src_ref`` [S,4,4]."""
     from .launch import run_row_bands
@@ -595,6 +750,25 @@ def propagate_depth(
         run_row_bands(device, H, zncc_band)
     out = wp.empty((H, W), dtype=float, device=device)
     wp.launch(candidate_select_kernel, dim=(H, W), inputs=[m1, m2, best_k, depth_w, cand_w], outputs=[out], device=device)
+    if ref_colour is not None and rescore > 0:
+        import cv2
+
+        # pixels whose own window straddles a depth edge (its depths span more than edge_ratio)
+        box = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+        d = np.asarray(depth, np.float32)
+        lo, hi = cv2.erode(np.where(d > 0, d, np.float32(1e9)), box), cv2.dilate(d, box)
+        at_edge = wp.array(((hi > edge_ratio * lo) & (d > 0)).astype(np.int32), dtype=wp.int32, device=device)
+        picked = wp.empty((rescore, H, W), dtype=wp.int32, device=device)
+        wp.launch(rescore_pick_kernel, dim=(H, W), inputs=[m1, m2, depth_w, cand_w, at_edge], outputs=[picked], device=device)
+        colour_w = wp.array(np.ascontiguousarray(ref_colour[:H, :W], dtype=np.float32), dtype=wp.vec3, device=device)
+        a1 = wp.full((rescore, H, W), NO_COST, dtype=float, device=device)
+        a2 = wp.full((rescore, H, W), NO_COST, dtype=float, device=device)
+        for s in range(S):
+            def adaptive_band(worker, row0, n, s=s):
+                wp.launch(adaptive_window_kernel, dim=(rescore, n, W), inputs=[ref_w, colour_w, ref_rays, depth_w, cand_w, picked, src_w, cams_w, T_w, s, radius, gamma_colour, gamma_distance, min_std, row0], outputs=[a1, a2], device=device)
+
+            run_row_bands(device, H, adaptive_band)
+        wp.launch(rescore_select_kernel, dim=(H, W), inputs=[a1, a2, picked, depth_w, cand_w], outputs=[out], device=device)
     return out.numpy()
 
 

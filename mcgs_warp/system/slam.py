@@ -258,7 +258,8 @@ class SLAM:
         up to ``radius`` keyframes either side and the rig's overlapping cameras at the same
         time. MCBA's depth lives on a grid of 8 px cells and is upsampled, so depth edges
         spread over a cell and plain surfaces carry the grid's error; each pixel now takes
-        the nearby depth (or a 2-5 % change of its own) that its 9x9 window matches best.
+        the nearby depth (or a 2-5 % change of its own) that its 9x9 window matches best
+        (at depth edges with colour-adaptive window weights, against foreground fattening).
         Then, with ``min_views`` > 0, a target pixel is kept only where at least that many of
         those views' new targets put the point within 5 % of it
         (:func:`~mcgs_warp.kernels.stereo.consistent_depth`); the rest get no depth target."""
@@ -292,7 +293,7 @@ class SLAM:
             for c in range(len(rig)):
                 views, T_src_ref = views_of(k, c)
                 depth = np.asarray(self.mapper.depths[k][c], np.float32)
-                targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, device=buf.device))
+                targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, ref_colour=buf.images[k][c], device=buf.device))
             self.mapper.depths[k] = targets
             self.progress("photo depth", n + 1, len(todo))
         if min_views <= 0:
