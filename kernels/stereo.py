@@ -417,11 +417,13 @@ def rescore_pick_kernel(
     depth: wp.array(dtype=float, ndim=2),  # [H,W] m
     candidates: wp.array(dtype=wp.vec3),  # [D]
     at_edge: wp.array(dtype=wp.int32, ndim=2),  # [H,W] 1 where the depth window straddles an edge
+    best_k: int,  # 1 or 2, as in candidate_select_kernel
     picked: wp.array(dtype=wp.int32, ndim=3),  # [K,H,W] candidate indices, -1 = none
 ):
     """Per pixel at a depth edge whose own depth some source measured: its own depth
-    (candidate 0) and the ``K - 1`` other candidates of lowest separable cost (mean of the
-    two best sources), to be re-scored by :func:`adaptive_window_kernel`."""
+    (candidate 0) and the ``K - 1`` other candidates of lowest separable cost (as
+    :func:`candidate_select_kernel` ranks them, so the separable winner is among them), to be
+    re-scored by :func:`adaptive_window_kernel`."""
     y, x = wp.tid()
     K = picked.shape[0]
     for j in range(K):
@@ -435,7 +437,9 @@ def rescore_pick_kernel(
         for k in range(1, candidates.shape[0]):
             cand = candidates[k]
             z = candidate_depth(depth, cand, y, x)
-            c = 0.5 * (m1[k, y, x] + m2[k, y, x])
+            c = m1[k, y, x]
+            if best_k > 1:
+                c = 0.5 * (c + m2[k, y, x])
             taken = int(0)
             for i in range(1, j):
                 if picked[i, y, x] == k:
@@ -522,10 +526,12 @@ def rescore_select_kernel(
     picked: wp.array(dtype=wp.int32, ndim=3),  # [K,H,W]
     depth: wp.array(dtype=float, ndim=2),  # [H,W] m
     candidates: wp.array(dtype=wp.vec3),  # [D]
+    best_k: int,  # 1 or 2, as in candidate_select_kernel
     out: wp.array(dtype=float, ndim=2),  # [H,W] m: overwritten where re-scored
 ):
     """Where the own depth was re-scored at all: the picked candidate of lowest adaptive
-    cost (mean of the two best sources), replacing the separable pass's choice."""
+    cost (``best_k`` as in :func:`candidate_select_kernel`), replacing the separable pass's
+    choice."""
     y, x = wp.tid()
     if picked[0, y, x] < 0 or a1[0, y, x] >= NO_COST:
         return
@@ -534,7 +540,9 @@ def rescore_select_kernel(
     for j in range(picked.shape[0]):
         k = picked[j, y, x]
         if k >= 0:
-            c = 0.5 * (a1[j, y, x] + a2[j, y, x])
+            c = a1[j, y, x]
+            if best_k > 1:
+                c = 0.5 * (c + a2[j, y, x])
             cand = candidates[k]
             z = candidate_depth(depth, cand, y, x)
             if z > 0.0 and c < best:
@@ -753,14 +761,20 @@ def propagate_depth(
     if ref_colour is not None and rescore > 0:
         import cv2
 
+        if rescore < 2:
+            raise ValueError(f"propagate_depth: rescore must be 0 (off) or at least 2 (the own depth and another candidate), got {rescore}")
+        ref_colour = np.asarray(ref_colour)
+        if ref_colour.shape[:2] != (H, W) or ref_colour.ndim != 3 or ref_colour.shape[2] != 3 or ref_colour.dtype.kind != "f":
+            raise ValueError(f"propagate_depth: ref_colour must be a float RGB image [{H},{W},3] in [0,1] like the depth map, got {ref_colour.dtype} {ref_colour.shape}")
+
         # pixels whose own window straddles a depth edge (its depths span more than edge_ratio)
         box = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
         d = np.asarray(depth, np.float32)
         lo, hi = cv2.erode(np.where(d > 0, d, np.float32(1e9)), box), cv2.dilate(d, box)
         at_edge = wp.array(((hi > edge_ratio * lo) & (d > 0)).astype(np.int32), dtype=wp.int32, device=device)
         picked = wp.empty((rescore, H, W), dtype=wp.int32, device=device)
-        wp.launch(rescore_pick_kernel, dim=(H, W), inputs=[m1, m2, depth_w, cand_w, at_edge], outputs=[picked], device=device)
-        colour_w = wp.array(np.ascontiguousarray(ref_colour[:H, :W], dtype=np.float32), dtype=wp.vec3, device=device)
+        wp.launch(rescore_pick_kernel, dim=(H, W), inputs=[m1, m2, depth_w, cand_w, at_edge, best_k], outputs=[picked], device=device)
+        colour_w = wp.array(np.ascontiguousarray(ref_colour, dtype=np.float32), dtype=wp.vec3, device=device)
         a1 = wp.full((rescore, H, W), NO_COST, dtype=float, device=device)
         a2 = wp.full((rescore, H, W), NO_COST, dtype=float, device=device)
         for s in range(S):
@@ -768,7 +782,7 @@ def propagate_depth(
                 wp.launch(adaptive_window_kernel, dim=(rescore, n, W), inputs=[ref_w, colour_w, ref_rays, depth_w, cand_w, picked, src_w, cams_w, T_w, s, radius, gamma_colour, gamma_distance, min_std, row0], outputs=[a1, a2], device=device)
 
             run_row_bands(device, H, adaptive_band)
-        wp.launch(rescore_select_kernel, dim=(H, W), inputs=[a1, a2, picked, depth_w, cand_w], outputs=[out], device=device)
+        wp.launch(rescore_select_kernel, dim=(H, W), inputs=[a1, a2, picked, depth_w, cand_w, best_k], outputs=[out], device=device)
     return out.numpy()
 
 
@@ -802,18 +816,25 @@ def depth_agreement_kernel(
 
 def consistent_depth(ref_rays: wp.array, depth: np.ndarray, src_rays, src_depths, src_cams, T_src_ref: np.ndarray, min_views: int = 2, tol: float = 0.05, device=None) -> np.ndarray:
     """``depth`` [H,W] (m, 0 = none) with 0 wherever fewer than ``min_views`` of the S
-    sources confirm it (:func:`depth_agreement_kernel`): depths no other view's map
+    sources (all S where there are fewer; none: ``depth`` as is) confirm it (:func:`depth_agreement_kernel`): depths no other view's map
     reproduces, such as outliers in front of a far wall or a foreground edge spread onto
     the background in one view only, are dropped rather than trusted. ``src_rays``: S
     [Hs,Ws] ray arrays (:func:`camera_rays`), ``src_depths``: S depth maps [Hs,Ws],
     ``src_cams``: S :class:`Camera`, ``T_src_ref`` [S,4,4] reference camera -> source."""
     device = ref_rays.device if device is None else wp.get_device(device)
     depth = np.asarray(depth, np.float32)
+    T_src_ref = np.asarray(T_src_ref, np.float64).reshape(-1, 4, 4)
+    S = len(src_depths)
+    if not len(src_rays) == len(src_cams) == len(T_src_ref) == S:
+        raise ValueError(f"consistent_depth: {len(src_rays)} ray arrays, {S} depth maps, {len(src_cams)} cameras and {len(T_src_ref)} poses: expected one of each per source")
+    need = min(min_views, S)  # a view with fewer sources is judged by all it has; none: kept as is
+    if need <= 0:
+        return depth.copy()
     H, W = depth.shape
     depth_w = wp.array(np.ascontiguousarray(depth), dtype=float, device=device)
     count = wp.zeros((H, W), dtype=wp.int32, device=device)
-    for rays_s, d_s, cam_s, T in zip(src_rays, src_depths, src_cams, np.asarray(T_src_ref, np.float64).reshape(-1, 4, 4)):
+    for rays_s, d_s, cam_s, T in zip(src_rays, src_depths, src_cams, T_src_ref):
         M, M_inv = (wp.mat44(*m.astype(np.float32).ravel()) for m in (T, np.linalg.inv(T)))
         d_w = wp.array(np.ascontiguousarray(d_s, dtype=np.float32), dtype=float, device=device)
         wp.launch(depth_agreement_kernel, dim=(H, W), inputs=[ref_rays, depth_w, rays_s, d_w, cam_s, M, M_inv, float(tol)], outputs=[count], device=device)
-    return np.where(count.numpy() >= min_views, depth, 0.0).astype(np.float32)
+    return np.where(count.numpy() >= need, depth, 0.0).astype(np.float32)

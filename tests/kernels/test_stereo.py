@@ -233,8 +233,8 @@ def test_consistency_drops_depths_the_other_views_do_not_confirm(model):
     cams = [c.warp_camera() for c in rig.cameras]
     rays = [camera_rays(c, "cpu") for c in cams]
 
-    def filtered(depth):
-        return consistent_depth(rays[0], depth, [rays[c] for *_x, c in sources], [d for _im, d, _T, _c in sources], [cams[c] for *_x, c in sources], np.stack([T for _im, _d, T, _c in sources]))
+    def filtered(depth, sources=sources):
+        return consistent_depth(rays[0], depth, [rays[c] for *_x, c in sources], [d for _im, d, _T, _c in sources], [cams[c] for *_x, c in sources], np.array([T for _im, _d, T, _c in sources]).reshape(-1, 4, 4))
 
     H, W = gt.shape
     wrong = np.zeros(gt.shape, bool)
@@ -248,6 +248,13 @@ def test_consistency_drops_depths_the_other_views_do_not_confirm(model):
     kept_right = (out[(gt > 0) & ~wrong] > 0).mean()
     assert kept_wrong < 0.05, kept_wrong
     assert kept_right > 0.8, kept_right
+    # fewer sources than min_views: judged by all there are (here the rig's pinhole alone, which
+    # sees a part of a fisheye's or a panorama's view); none: kept as is
+    one = filtered(start, sources[:1])
+    assert (one[wrong] > 0).mean() < 0.05 and (one[(gt > 0) & ~wrong] > 0).mean() > 0.05  # 9 % for the panorama
+    assert (filtered(start, []) == start).all()
+    with pytest.raises(ValueError, match="expected one of each per source"):
+        consistent_depth(rays[0], start, [rays[0]], [gt, gt], [cams[0]], np.eye(4)[None])
 
 
 @pytest.mark.parametrize("model", list(MODELS))
@@ -279,5 +286,9 @@ def test_adaptive_rescoring_undoes_foreground_fattening(model):
     # pinhole / equirectangular: 1.15 -> 1.08 / 1.17 -> 1.09 m; the fisheye's wide view puts half
     # its pixels at depth edges (the floor at grazing angles), where the gain is smaller
     assert err(adaptive) < (0.99 if model == "fisheye" else 0.95) * err(plain), (err(adaptive), err(plain), err(start))
+    with pytest.raises(ValueError, match="ref_colour must be a float RGB image"):
+        propagate(start, image[:-1])
+    with pytest.raises(ValueError, match="rescore must be 0"):
+        propagate_depth(grey(image, 1), rays, start, [grey(sources[0][0], 1)], [cams[sources[0][3]]], sources[0][2][None], ref_colour=image, rescore=1)
     away = (cv2.dilate(start, box) <= 1.2 * cv2.erode(np.where(start > 0, start, 1e9).astype(np.float32), box)) & (start > 0)
     assert (adaptive[away] == plain[away]).all()
