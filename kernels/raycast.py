@@ -98,10 +98,17 @@ def albedo(scene: Scene, m: int, p: wp.vec3):
 
 @wp.func
 def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
-    """Nearest hit ``(t, normal, material)`` of the ray ``o + t d`` (t > 0)."""
+    """Nearest hit ``(t, normal, material, point)`` of the ray ``o + t d`` (t > 0).
+
+    On a room wall the point's coordinate across the wall is the wall's own value, not
+    the rounded ``o + t d``: the textures' cell boundaries (checker, brick rows) lie on
+    the walls' planes, so rounding (which differs between devices: CUDA fuses the
+    multiply-add) would otherwise pick the cell of each sample at random."""
     best = NO_HIT
     normal = wp.vec3(0.0, 0.0, 1.0)
     mat = int(0)
+    wall_axis = int(-1)  # the room wall hit, if any: its axis and coordinate
+    wall_at = float(0.0)
     # Room walls, from inside: the first slab plane the ray leaves through.
     for k in range(3):
         if d[k] > 1.0e-12:
@@ -111,6 +118,8 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
                 normal = wp.vec3(0.0)
                 normal[k] = -1.0
                 mat = scene.room_materials[2 * k + 1]
+                wall_axis = k
+                wall_at = scene.room_max[k]
         elif d[k] < -1.0e-12:
             t = (scene.room_min[k] - o[k]) / d[k]
             if t > 0.0 and t < best:
@@ -118,6 +127,8 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
                 normal = wp.vec3(0.0)
                 normal[k] = 1.0
                 mat = scene.room_materials[2 * k]
+                wall_axis = k
+                wall_at = scene.room_min[k]
     for b in range(scene.box_center.shape[0]):
         # Cheap rejection by the box's bounding sphere before the slab test.
         oc = o - scene.box_center[b]
@@ -161,6 +172,7 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
             nl[axis] = sign
             normal = wp.vec3(c * nl[0] - s * nl[1], s * nl[0] + c * nl[1], nl[2])
             mat = scene.box_material[b]
+            wall_axis = -1
     for k in range(scene.sphere_center.shape[0]):
         oc = o - scene.sphere_center[k]
         r = scene.sphere_radius[k]
@@ -173,15 +185,18 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
                 best = t
                 normal = wp.normalize(oc + t * d)
                 mat = scene.sphere_material[k]
-    return best, normal, mat
+                wall_axis = -1
+    p = o + best * d
+    if wall_axis >= 0:
+        p[wall_axis] = wall_at
+    return best, normal, mat, p
 
 
 @wp.func
 def shade(scene: Scene, o: wp.vec3, d: wp.vec3):
-    t, n, m = intersect_scene(scene, o, d)
+    t, n, m, p = intersect_scene(scene, o, d)
     if t >= NO_HIT:
         return wp.vec3(0.0), 0.0
-    p = o + t * d
     lambert = wp.abs(wp.dot(n, scene.light_dir))
     return albedo(scene, m, p) * (0.45 + 0.55 * lambert), t
 
@@ -227,7 +242,7 @@ def raycast_kernel(
     R = wp.mat33(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
     o = wp.vec3(T[0, 3], T[1, 3], T[2, 3])
     # Depth: the pixel-centre ray is scaled so that t is the camera model's depth.
-    t0, n0, m0 = intersect_scene(scene, o, R * centre_rays[c, y, x])
+    t0, n0, m0, p0 = intersect_scene(scene, o, R * centre_rays[c, y, x])
     depth[c, y, x] = wp.where(t0 < NO_HIT, t0, 0.0)
     acc = wp.vec3(0.0)
     for sy in range(ss):
