@@ -40,6 +40,9 @@ colour-adaptive support weights (:func:`rescore_pick_kernel`, :func:`adaptive_wi
 :func:`rescore_select_kernel`; Yoon & Kweon, PAMI 2006). :func:`consistent_depth` then keeps only the depths that
 other views' depth maps confirm (geometric consistency, as multi-view stereo fusion does:
 Schönberger et al., ECCV 2016; Yao et al., ECCV 2018), :func:`depth_agreement_kernel`.
+
+:func:`patch_sad` scores many matches between views at once (:func:`patch_sad_kernel`: the
+mean-removed SAD of two 7 x 7 patches), the photometric confidence of the guided flow.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ import numpy as np
 import warp as wp
 
 from .camera import FAR, NEAR, Camera, camera_in_domain, camera_project
+from .mapping import sample_grid
 
 wp.set_module_options({"enable_backward": False})
 
@@ -644,6 +648,101 @@ def left_right_check(a: SweepResult, rays_a, cam_a: Camera, b: SweepResult, rays
     M_ba, M_ab = (wp.mat44(*m.astype(np.float32).ravel()) for m in (T_b_a, np.linalg.inv(T_b_a)))
     H, W = a.inv_depth.shape
     wp.launch(lr_check_kernel, dim=(H, W), inputs=[rays_a, a.inv_depth, cam_b, rays_b, b.inv_depth, cam_a, M_ba, M_ab, max_px], outputs=[a.confidence], device=device)
+
+
+@wp.func
+def sample_replicated(img: wp.array(dtype=float, ndim=3), v: int, u: float, y: float, width: int, height: int):
+    """Bilinear sample of ``img[v]`` at ``(u, y)`` with the border replicated (as OpenCV's
+    ``BORDER_REPLICATE``: the coordinates are clamped into the image); NaN reads as 0, 0."""
+    if wp.isnan(u) or wp.isnan(y):
+        u = 0.0
+        y = 0.0
+    return sample_grid(img, v, wp.clamp(u, 0.0, float(width - 1)), wp.clamp(y, 0.0, float(height - 1)), width, height)
+
+
+#: The largest patch :func:`patch_sad_kernel` holds: radius 3, 7 x 7 differences.
+PATCH_MAX_RADIUS = 3
+patch_diffs = wp.types.vector(length=(2 * PATCH_MAX_RADIUS + 1) ** 2, dtype=float)
+
+
+@wp.kernel
+def patch_sad_kernel(
+    grey: wp.array(dtype=float, ndim=3),  # [V,H,W] grey views, zero-padded to the largest
+    sizes: wp.array(dtype=wp.vec2i),  # [V] (width, height) of each view
+    view_a: wp.array(dtype=wp.int32),  # [E]
+    view_b: wp.array(dtype=wp.int32),  # [E]
+    uv_a: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] full-resolution pixels in view_a
+    uv_b: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] their matches in view_b
+    radius: int,  # at most PATCH_MAX_RADIUS
+    e0: int,  # first match row (edge) of this launch
+    sad: wp.array(dtype=float, ndim=3),  # [E,h,w] out
+):
+    """Mean absolute difference of the two ``(2r+1)^2`` patches, their mean difference
+    removed (a brightness offset between the views does not count)."""
+    eb, y, x = wp.tid()
+    e = eb + e0
+    va = view_a[e]
+    vb = view_b[e]
+    pa = uv_a[e, y, x]
+    pb = uv_b[e, y, x]
+    wa = sizes[va][0]
+    ha = sizes[va][1]
+    wb = sizes[vb][0]
+    hb = sizes[vb][1]
+    d = patch_diffs()
+    k = int(0)
+    mean = float(0.0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            a = sample_replicated(grey, va, pa[0] + float(dx), pa[1] + float(dy), wa, ha)
+            b = sample_replicated(grey, vb, pb[0] + float(dx), pb[1] + float(dy), wb, hb)
+            d[k] = a - b
+            mean += a - b
+            k += 1
+    mean = mean / float(k)
+    total = float(0.0)
+    for m in range(k):
+        total += wp.abs(d[m] - mean)
+    sad[e, y, x] = total / float(k)
+
+
+def patch_sad(views, view_a, view_b, uv_a: np.ndarray, uv_b: np.ndarray, radius: int = 3, device=None) -> np.ndarray:
+    """Mean-removed patch SAD [E,h,w] of many matches in one launch: ``views`` a list of
+    grey images [H,W] (float, any sizes); match ``(e, y, x)`` compares view ``view_a[e]``
+    around full-resolution pixel ``uv_a[e,y,x]`` with view ``view_b[e]`` around
+    ``uv_b[e,y,x]`` (bilinear, border replicated; ``uv`` [E,h,w,2] in px)."""
+    device = wp.get_device(device)
+    uv_a, uv_b = np.asarray(uv_a, np.float32), np.asarray(uv_b, np.float32)
+    E = len(view_a)
+    if uv_a.shape != uv_b.shape or uv_a.ndim != 4 or uv_a.shape[0] != E or uv_a.shape[3] != 2 or len(view_b) != E:
+        raise ValueError(f"patch_sad: uv_a and uv_b must both be [E,h,w,2] with E = {E} pairs, got {uv_a.shape} and {uv_b.shape} ({len(view_b)} view_b)")
+    if not 0 <= radius <= PATCH_MAX_RADIUS:
+        raise ValueError(f"patch_sad: radius must be 0..{PATCH_MAX_RADIUS}, got {radius}")
+    H = max(v.shape[0] for v in views)
+    W = max(v.shape[1] for v in views)
+    grey = np.zeros((len(views), H, W), np.float32)
+    for k, v in enumerate(views):
+        grey[k, : v.shape[0], : v.shape[1]] = v
+    sizes = np.array([(v.shape[1], v.shape[0]) for v in views], np.int32)
+    from .launch import run_row_bands
+
+    out = wp.empty(uv_a.shape[:3], dtype=float, device=device)
+    inputs = [
+        wp.array(grey, dtype=float, device=device),
+        wp.array(sizes, dtype=wp.vec2i, device=device),
+        wp.array(np.asarray(view_a, np.int32), dtype=wp.int32, device=device),
+        wp.array(np.asarray(view_b, np.int32), dtype=wp.int32, device=device),
+        wp.array(uv_a, dtype=wp.vec2, device=device),
+        wp.array(uv_b, dtype=wp.vec2, device=device),
+        int(radius),
+    ]
+
+    def band(worker, e0, n):  # on the CPU, bands of edges on all cores
+        wp.launch(patch_sad_kernel, dim=(n,) + uv_a.shape[1:3], inputs=inputs + [e0], outputs=[out], device=device)
+
+    if E:
+        run_row_bands(device, E, band)
+    return out.numpy()
 
 
 @wp.kernel

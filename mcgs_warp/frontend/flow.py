@@ -284,7 +284,8 @@ class GuidedDIS(FlowProvider):
     only the residual ``r``; the target is the prediction at ``p + r``. Wide baselines,
     rotations and different camera models reduce to a small residual. Confidence: the
     residual's forward-backward consistency times ``exp(-(SAD / photo_sigma)^2)``, the
-    7x7 grey-level patch difference at the match, mean removed (:func:`patch_sad`), zero where the
+    7x7 grey-level patch difference at the match, mean removed
+    (:func:`~mcgs_warp.kernels.stereo.patch_sad`), zero where the
     prediction leaves view j. The photometric factor catches what the consistency check
     cannot: where DIS leaves a wrong prediction in place, both directions agree on it (RGB
     only, built-in sequence: confident temporal matches more than 4 px off 4.8 % -> 0.8 %,
@@ -355,49 +356,35 @@ class GuidedDIS(FlowProvider):
         return self.photometric(buffer, edges, targets, weights) if photometric else (targets, weights)
 
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
-        """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel
-        (:func:`patch_sad` of view (i, ci) at the grid pixel and view (j, cj) at its target)."""
+        """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel:
+        the mean-removed 7x7 patch SAD of view (i, ci) at the grid pixel and view (j, cj) at
+        its target, all edges in one launch (:func:`~mcgs_warp.kernels.stereo.patch_sad`)."""
         import cv2
 
-        s = buffer.stride
+        from ..kernels.stereo import patch_sad
+
         weights = weights.copy()
-        grey: dict = {}  # (keyframe, camera) -> grey image, made once per call
+        if len(edges) == 0:
+            return targets, weights
+        s = buffer.stride
+        views: list = []
+        index: dict = {}  # (keyframe, camera) -> position in views, each grey image made once
 
-        def grey_of(k, c):
-            if (k, c) not in grey:
-                grey[(k, c)] = cv2.cvtColor(np.asarray(buffer.images[k][c], np.float32), cv2.COLOR_RGB2GRAY)
-            return grey[(k, c)]
+        def view(k, c):
+            if (k, c) not in index:
+                index[(k, c)] = len(views)
+                views.append(cv2.cvtColor(np.asarray(buffer.images[k][c], np.float32), cv2.COLOR_RGB2GRAY))
+            return index[(k, c)]
 
-        for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):
-            uv = grid_pixels(buffer.rig.cameras[ci], s).astype(np.float32)
-            hr, wr = uv.shape[:2]
-            ok = weights[e, :hr, :wr] > 0
-            t = np.where(ok[..., None], from_reduced(targets[e, :hr, :wr], s), -1e4)  # -1e4: weight already 0
-            sad = patch_sad(grey_of(i, ci), uv, grey_of(j, cj), t)
-            weights[e, :hr, :wr] *= np.exp(-((sad / self.photo_sigma) ** 2))
+        uv_a = np.full(weights.shape + (2,), -1e4, np.float32)  # outside a camera's grid: weight 0
+        for e, ci in enumerate(edges[:, 1].tolist()):
+            uv = grid_pixels(buffer.rig.cameras[ci], s)
+            uv_a[e, : uv.shape[0], : uv.shape[1]] = uv
+        uv_b = np.where((weights > 0)[..., None], from_reduced(targets, s), -1e4).astype(np.float32)
+        va = [view(i, ci) for i, ci in edges[:, :2].tolist()]
+        vb = [view(j, cj) for j, cj in edges[:, 2:4].tolist()]
+        sad = patch_sad(views, va, vb, uv_a, uv_b, device=buffer.device)
+        weights *= np.exp(-((sad / self.photo_sigma) ** 2))
         return targets, weights
 
 
-def patch_sad(image_a: np.ndarray, uv_a: np.ndarray, image_b: np.ndarray, uv_b: np.ndarray, radius: int = 3) -> np.ndarray:
-    """Mean absolute grey-level difference [h,w] between the (2 radius + 1)^2 patches of
-    ``image_a`` around ``uv_a`` [h,w,2] and of ``image_b`` around ``uv_b`` [h,w,2], each
-    patch pair's mean difference removed, so that a brightness offset between the views
-    (auto-exposure, cameras of different gain) does not count (full-resolution pixels,
-    bilinear; images [H,W,3] RGB in [0, 1] or [H,W] grey; borders replicated)."""
-    import cv2
-
-    def grey(image):
-        image = np.asarray(image, np.float32)
-        return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-
-    grey_a, grey_b = grey(image_a), grey(image_b)
-    ua, va = (np.ascontiguousarray(uv_a[..., k], dtype=np.float32) for k in (0, 1))
-    ub, vb = (np.ascontiguousarray(uv_b[..., k], dtype=np.float32) for k in (0, 1))
-    diffs = []
-    for dy in range(-radius, radius + 1):  # one small remap per offset (faster than one wide map)
-        for dx in range(-radius, radius + 1):
-            a = cv2.remap(grey_a, ua + dx, va + dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            b = cv2.remap(grey_b, ub + dx, vb + dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            diffs.append(a - b)
-    d = np.stack(diffs)
-    return np.abs(d - d.mean(axis=0)).mean(axis=0)  # each patch's mean difference removed

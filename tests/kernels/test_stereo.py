@@ -8,6 +8,7 @@ from mcgs_warp.data.synthetic import SceneRenderer, build_scene
 from mcgs_warp.frontend.stereo import RigStereo, StereoConfig, upsample_nearest
 from mcgs_warp.geometry import pose, yaw_pitch_roll
 from mcgs_warp.rig import CameraSpec, Rig
+from warp_devices import devices
 
 # OpenCV optical frame (x right, y down, z forward) looking along body +x (world x forward, z up).
 Q_FORWARD = (-0.5, 0.5, -0.5, 0.5)
@@ -292,3 +293,61 @@ def test_adaptive_rescoring_undoes_foreground_fattening(model):
         propagate_depth(grey(image, 1), rays, start, [grey(sources[0][0], 1)], [cams[sources[0][3]]], sources[0][2][None], ref_colour=image, rescore=1)
     away = (cv2.dilate(start, box) <= 1.2 * cv2.erode(np.where(start > 0, start, 1e9).astype(np.float32), box)) & (start > 0)
     assert (adaptive[away] == plain[away]).all()
+
+
+def _patch_sad_reference(views, va, vb, uv_a, uv_b, radius):
+    """float64 NumPy twin of kernels.stereo.patch_sad (bilinear, border replicated)."""
+
+    def sample(img, u, v):
+        H, W = img.shape
+        u, v = np.clip(np.nan_to_num(u), 0, W - 1), np.clip(np.nan_to_num(v), 0, H - 1)
+        x0, y0 = np.minimum(u.astype(int), max(W - 2, 0)), np.minimum(v.astype(int), max(H - 2, 0))
+        x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+        fx, fy = u - x0, v - y0
+        return (img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy
+
+    out = np.zeros(uv_a.shape[:3])
+    for e in range(len(va)):
+        a, b = views[va[e]].astype(np.float64), views[vb[e]].astype(np.float64)
+        d = np.stack([sample(a, uv_a[e, ..., 0] + dx, uv_a[e, ..., 1] + dy) - sample(b, uv_b[e, ..., 0] + dx, uv_b[e, ..., 1] + dy) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)])
+        out[e] = np.abs(d - d.mean(0)).mean(0)
+    return out
+
+
+@pytest.mark.parametrize("device", devices())
+def test_patch_sad_matches_a_float64_twin(device):
+    """Many matches between views of different sizes in one launch, near and beyond the
+    borders (replicated) and with NaN targets, agree with a float64 NumPy twin."""
+    from mcgs_warp.kernels.stereo import patch_sad
+
+    rng = np.random.default_rng(0)
+    views = [rng.random((40, 50)).astype(np.float32), rng.random((30, 64)).astype(np.float32), rng.random((2, 3)).astype(np.float32)]
+    va, vb = [0, 1, 2, 0], [1, 0, 0, 2]
+    uv_a = rng.uniform(-5, 70, (4, 6, 7, 2)).astype(np.float32)
+    uv_b = rng.uniform(-5, 70, (4, 6, 7, 2)).astype(np.float32)
+    uv_b[1, 2, 3] = np.nan
+    for radius in (0, 1, 3):
+        got = patch_sad(views, va, vb, uv_a, uv_b, radius=radius, device=device)
+        np.testing.assert_allclose(got, _patch_sad_reference(views, va, vb, uv_a, uv_b, radius), atol=2e-6)
+    with pytest.raises(ValueError, match="uv_a and uv_b"):
+        patch_sad(views, va, vb, uv_a, uv_b[:3], device=device)
+    with pytest.raises(ValueError, match="radius must be 0..3"):
+        patch_sad(views, va, vb, uv_a, uv_b, radius=4, device=device)
+
+
+def test_patch_sad_is_zero_at_the_true_shift_only():
+    """Zero where the patches show the same content (an image and its copy shifted by
+    (5, 3) px, also 0.1 brighter), clearly above zero 2 px off."""
+    import cv2
+
+    from mcgs_warp.kernels.stereo import patch_sad
+
+    rng = np.random.default_rng(0)
+    a = cv2.cvtColor(cv2.GaussianBlur(rng.random((60, 80, 3)).astype(np.float32), (0, 0), 1.5), cv2.COLOR_RGB2GRAY)
+    b = np.roll(a, (3, 5), axis=(0, 1))
+    v, u = np.mgrid[10:40:4, 10:60:4].astype(np.float32)
+    uv = np.stack([u, v], -1)[None]
+    assert patch_sad([a, b], [0], [1], uv, uv + [5, 3]).max() < 1e-5
+    assert patch_sad([a, b + 0.1], [0], [1], uv, uv + [5, 3]).max() < 1e-5  # a brighter view: the same match
+    wrong = patch_sad([a, b], [0], [1], uv, uv + [7, 3])
+    assert wrong.min() > 0.005 and wrong.mean() > 0.02, (wrong.min(), wrong.mean())
