@@ -309,10 +309,7 @@ def camera_in_domain(cam: Camera, p: wp.vec3, near: float, far: float):
 @wp.func
 def camera_unproject(cam: Camera, uv: wp.vec2, depth: float):
     """Camera-frame point seen at pixel ``uv`` with depth ``depth`` (same meaning as
-    :func:`camera_depth`). Distortion is inverted by Newton iterations; where they find no
-    point (off by more than 0.01 px: a fisheye pixel beyond 90 degrees off the axis, which no
-    point in front of the camera reaches) the result is the zero vector, on every device,
-    which every consumer's domain test (depth above ``near``) rejects."""
+    :func:`camera_depth`). Distortion is inverted by Newton iterations."""
     if cam.model == EQUIRECTANGULAR:
         lon = (uv[0] - cam.cx) / cam.fx
         lat = (uv[1] - cam.cy) / cam.fy
@@ -323,11 +320,7 @@ def camera_unproject(cam: Camera, uv: wp.vec2, depth: float):
     for _ in range(20):
         nd, J, dJa, dJb = distort(cam, n)
         n = n - wp.inverse(J) * (nd - m)
-    nd, J, dJa, dJb = distort(cam, n)
-    e = nd - m
-    if wp.abs(cam.fx * e[0]) < 0.01 and wp.abs(cam.fy * e[1]) < 0.01:  # false for NaN too
-        return depth * wp.vec3(n[0], n[1], 1.0)
-    return wp.vec3(0.0)
+    return depth * wp.vec3(n[0], n[1], 1.0)
 
 
 # --------------------------------------------------------------------------------------

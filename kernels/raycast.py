@@ -101,9 +101,10 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
     """Nearest hit ``(t, normal, material, point)`` of the ray ``o + t d`` (t > 0).
 
     On a room wall the point's coordinate across the wall is the wall's own value, not
-    the rounded ``o + t d``: the textures' cell boundaries (checker, brick rows) lie on
-    the walls' planes, so rounding (which differs between devices: CUDA fuses the
-    multiply-add) would otherwise pick the cell of each sample at random."""
+    the rounded ``o + t d``: texture cell boundaries can lie on a wall's plane (the
+    checker's at z = 0 on the floor, brick rows at z = k/4 on a brick floor or ceiling), and
+    rounding (which differs between devices: CUDA fuses the multiply-add) would otherwise
+    pick the cell of each sample at random."""
     best = NO_HIT
     normal = wp.vec3(0.0, 0.0, 1.0)
     mat = int(0)

@@ -653,9 +653,11 @@ def left_right_check(a: SweepResult, rays_a, cam_a: Camera, b: SweepResult, rays
 @wp.func
 def sample_replicated(img: wp.array(dtype=float, ndim=3), v: int, u: float, y: float, width: int, height: int):
     """Bilinear sample of ``img[v]`` at ``(u, y)`` with the border replicated (as OpenCV's
-    ``BORDER_REPLICATE``: the coordinates are clamped into the image); NaN reads as 0, 0."""
-    if wp.isnan(u) or wp.isnan(y):
+    ``BORDER_REPLICATE``: the coordinates are clamped into the image); a NaN coordinate reads
+    as 0."""
+    if wp.isnan(u):
         u = 0.0
+    if wp.isnan(y):
         y = 0.0
     return sample_grid(img, v, wp.clamp(u, 0.0, float(width - 1)), wp.clamp(y, 0.0, float(height - 1)), width, height)
 
@@ -718,6 +720,12 @@ def patch_sad(views, view_a, view_b, uv_a: np.ndarray, uv_b: np.ndarray, radius:
         raise ValueError(f"patch_sad: uv_a and uv_b must both be [E,h,w,2] with E = {E} pairs, got {uv_a.shape} and {uv_b.shape} ({len(view_b)} view_b)")
     if not 0 <= radius <= PATCH_MAX_RADIUS:
         raise ValueError(f"patch_sad: radius must be 0..{PATCH_MAX_RADIUS}, got {radius}")
+    if E == 0:
+        return np.zeros(uv_a.shape[:3], np.float32)
+    for name, idx in (("view_a", view_a), ("view_b", view_b)):
+        idx = np.asarray(idx)
+        if idx.min() < 0 or idx.max() >= len(views):
+            raise ValueError(f"patch_sad: {name} must index the {len(views)} views, got values {idx.min()}..{idx.max()}")
     H = max(v.shape[0] for v in views)
     W = max(v.shape[1] for v in views)
     grey = np.zeros((len(views), H, W), np.float32)
@@ -740,8 +748,7 @@ def patch_sad(views, view_a, view_b, uv_a: np.ndarray, uv_b: np.ndarray, radius:
     def band(worker, e0, n):  # on the CPU, bands of edges on all cores
         wp.launch(patch_sad_kernel, dim=(n,) + uv_a.shape[1:3], inputs=inputs + [e0], outputs=[out], device=device)
 
-    if E:
-        run_row_bands(device, E, band)
+    run_row_bands(device, E, band)
     return out.numpy()
 
 

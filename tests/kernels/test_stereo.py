@@ -326,6 +326,7 @@ def test_patch_sad_matches_a_float64_twin(device):
     uv_a = rng.uniform(-5, 70, (4, 6, 7, 2)).astype(np.float32)
     uv_b = rng.uniform(-5, 70, (4, 6, 7, 2)).astype(np.float32)
     uv_b[1, 2, 3] = np.nan
+    uv_a[2, 1, 1, 0] = np.nan  # one coordinate only
     for radius in (0, 1, 3):
         got = patch_sad(views, va, vb, uv_a, uv_b, radius=radius, device=device)
         np.testing.assert_allclose(got, _patch_sad_reference(views, va, vb, uv_a, uv_b, radius), atol=2e-6)
@@ -333,6 +334,34 @@ def test_patch_sad_matches_a_float64_twin(device):
         patch_sad(views, va, vb, uv_a, uv_b[:3], device=device)
     with pytest.raises(ValueError, match="radius must be 0..3"):
         patch_sad(views, va, vb, uv_a, uv_b, radius=4, device=device)
+    with pytest.raises(ValueError, match="view_b must index the 3 views"):
+        patch_sad(views, va, [1, 0, 0, 3], uv_a, uv_b, device=device)
+
+
+def test_patch_sad_equals_opencv_remap_patches():
+    """The kernel reproduces what the flow front end computed before it, patches sampled by
+    cv2.remap (bilinear, BORDER_REPLICATE), for fractional, integer, out-of-view and
+    sentinel (-1e4) positions."""
+    import cv2
+
+    from mcgs_warp.kernels.stereo import patch_sad
+
+    rng = np.random.default_rng(3)
+    a = cv2.GaussianBlur(rng.random((48, 64)).astype(np.float32), (0, 0), 1.0)
+    b = cv2.GaussianBlur(rng.random((40, 70)).astype(np.float32), (0, 0), 1.0)
+    uv_a = rng.uniform(-3, 66, (1, 5, 6, 2)).astype(np.float32)
+    uv_b = rng.uniform(-3, 72, (1, 5, 6, 2)).astype(np.float32)
+    uv_a[0, 0] = np.round(uv_a[0, 0])
+    uv_b[0, 1, :2] = -1e4
+    diffs = []
+    for dy in range(-3, 4):
+        for dx in range(-3, 4):
+            pa = cv2.remap(a, uv_a[0, ..., 0] + dx, uv_a[0, ..., 1] + dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            pb = cv2.remap(b, uv_b[0, ..., 0] + dx, uv_b[0, ..., 1] + dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            diffs.append(pa - pb)
+    d = np.stack(diffs)
+    want = np.abs(d - d.mean(0)).mean(0)
+    np.testing.assert_allclose(patch_sad([a, b], [0], [1], uv_a, uv_b)[0], want, atol=1e-6)
 
 
 def test_patch_sad_is_zero_at_the_true_shift_only():
