@@ -64,13 +64,7 @@ def sample_bilinear(img: wp.array(dtype=float, ndim=3), s: int, u: float, v: flo
     """Bilinear sample of ``img[s]`` at continuous pixel ``(u, v)`` (OpenCV centres); -1 outside."""
     if u < 0.0 or v < 0.0 or u > float(width - 1) or v > float(height - 1):
         return -1.0
-    x0 = wp.min(int(wp.floor(u)), width - 2)
-    y0 = wp.min(int(wp.floor(v)), height - 2)
-    fx = u - float(x0)
-    fy = v - float(y0)
-    a = img[s, y0, x0] * (1.0 - fx) + img[s, y0, x0 + 1] * fx
-    b = img[s, y0 + 1, x0] * (1.0 - fx) + img[s, y0 + 1, x0 + 1] * fx
-    return a * (1.0 - fy) + b * fy
+    return sample_grid(img, s, u, v, width, height)
 
 
 @wp.kernel
