@@ -42,6 +42,9 @@ MODEL_IDS = {"pinhole": 0, "fisheye": 1, "equirectangular": 2}
 #: The one definition; the other modules import these.
 NEAR = wp.constant(0.01)
 FAR = wp.constant(100.0)
+#: Squared pixel error (px^2) up to which :func:`camera_unproject` accepts its Newton
+#: solution; a pixel it cannot reproduce that closely has no ray.
+UNPROJECT_TOL_PX2 = wp.constant(1.0e-4)
 #: Number of distortion coefficients each model takes.
 N_DIST = {"pinhole": 5, "fisheye": 4, "equirectangular": 0}
 
@@ -309,7 +312,14 @@ def camera_in_domain(cam: Camera, p: wp.vec3, near: float, far: float):
 @wp.func
 def camera_unproject(cam: Camera, uv: wp.vec2, depth: float):
     """Camera-frame point seen at pixel ``uv`` with depth ``depth`` (same meaning as
-    :func:`camera_depth`). Distortion is inverted by Newton iterations."""
+    :func:`camera_depth`). Distortion is inverted by Newton iterations.
+
+    NaN (all three coordinates) where the pixel has no ray in the model's domain: a
+    fisheye pixel beyond 90 degrees off the axis, a pinhole pixel only reached past the
+    distortion's fold (``|n|^2 > max_r2``), or wherever Newton does not reproduce the
+    pixel to 0.01 px. NaN fails every domain and depth test (:func:`camera_in_domain`
+    returns False for it), so such pixels drop out of matching and BA; consumers that do
+    not test the domain must skip non-finite rays themselves."""
     if cam.model == EQUIRECTANGULAR:
         lon = (uv[0] - cam.cx) / cam.fx
         lat = (uv[1] - cam.cy) / cam.fy
@@ -320,7 +330,13 @@ def camera_unproject(cam: Camera, uv: wp.vec2, depth: float):
     for _ in range(20):
         nd, J, dJa, dJb = distort(cam, n)
         n = n - wp.inverse(J) * (nd - m)
-    return depth * wp.vec3(n[0], n[1], 1.0)
+    nd, J, dJa, dJb = distort(cam, n)
+    ex = (nd[0] - m[0]) * cam.fx
+    ey = (nd[1] - m[1]) * cam.fy
+    # Written so that NaN fails it: a diverged Newton run gives inf or NaN here.
+    if wp.dot(n, n) <= cam.max_r2 and ex * ex + ey * ey <= UNPROJECT_TOL_PX2:
+        return depth * wp.vec3(n[0], n[1], 1.0)
+    return wp.vec3(wp.nan, wp.nan, wp.nan)
 
 
 # --------------------------------------------------------------------------------------

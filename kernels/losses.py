@@ -457,7 +457,8 @@ def image_grad_kernel(
                 gX += quad_a[c, y, x - 1]
             if y > 0:
                 gX += quad_b[c, y - 1, x]
-            gD += normal_weight[c] * wp.dot(gX, rays[c, y, x])
+            if wp.length_sq(gX) > 0.0:  # (a pixel without a ray, NaN, is in no valid quad)
+                gD += normal_weight[c] * wp.dot(gX, rays[c, y, x])
         grad_color[c, y, x] = gC
         grad_depth[c, y, x] = gD
         acc[6] = acc[6] + wp.float64(exp_log_a)

@@ -242,12 +242,20 @@ def raycast_kernel(
     T = T_w_c[c]
     R = wp.mat33(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
     o = wp.vec3(T[0, 3], T[1, 3], T[2, 3])
-    # Depth: the pixel-centre ray is scaled so that t is the camera model's depth.
-    t0, n0, m0, p0 = intersect_scene(scene, o, R * centre_rays[c, y, x])
-    depth[c, y, x] = wp.where(t0 < NO_HIT, t0, 0.0)
+    # Depth: the pixel-centre ray is scaled so that t is the camera model's depth. A pixel
+    # without a ray (NaN from camera_unproject: beyond a fisheye's 90 degrees) sees nothing:
+    # depth 0, black.
+    ray = centre_rays[c, y, x]
+    d0 = float(0.0)
+    if wp.isfinite(ray):
+        t0, n0, m0, p0 = intersect_scene(scene, o, R * ray)
+        d0 = wp.where(t0 < NO_HIT, t0, 0.0)
+    depth[c, y, x] = d0
     acc = wp.vec3(0.0)
     for sy in range(ss):
         for sx in range(ss):
-            col, t = shade(scene, o, R * sub_rays[c, y * ss + sy, x * ss + sx])
-            acc += col
+            sub = sub_rays[c, y * ss + sy, x * ss + sx]
+            if wp.isfinite(sub):
+                col, t = shade(scene, o, R * sub)
+                acc += col
     color[c, y, x] = acc / float(ss * ss)

@@ -185,9 +185,10 @@ class GaussianMap:
                 continue
             uv = np.stack([u[ok], v[ok]], 1).astype(np.float64)
             X_c = unproject_pixels(spec.warp_camera(), uv) * z[ok][:, None]
+            has_ray = np.isfinite(X_c).all(1)  # NaN: a pixel without a ray (beyond a fisheye's 90 degrees)
             T = T_w_b @ spec.T_b_c
-            pts.append(X_c @ T[:3, :3].T + T[:3, 3])
-            cols.append(images[c][v[ok], u[ok]])
+            pts.append(X_c[has_ray] @ T[:3, :3].T + T[:3, 3])
+            cols.append(images[c][v[ok], u[ok]][has_ray])
         if not pts:
             return 0
         pts = np.concatenate(pts)

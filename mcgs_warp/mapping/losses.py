@@ -109,6 +109,7 @@ class MappingLoss:
         elif tuple(rays.shape) != tuple(self.shape) or rays.device != self.device:
             raise ValueError(f"MappingLoss: rays must be {tuple(self.shape)} on {self.device}, got {tuple(rays.shape)} on {rays.device}")
         self.rays = rays
+        self._no_ray = ~np.isfinite(rays.numpy()).all(-1)  # [C,H,W]: pixels without a ray get no depth target
         self.cache_size = max(1, int(cache_size))
         self._cache: OrderedDict[int, KeyframeTargets] = OrderedDict()
         vec3_maps = [wp.zeros(self.shape, dtype=wp.vec3, device=self.device) for _ in range(8)]
@@ -148,6 +149,7 @@ class MappingLoss:
         depths = list(depths) if depths is not None else [None] * C
         img = wp.array(pad_images(images, C, H, W, 3), dtype=wp.vec3, device=dev)
         dep_np = pad_images(depths, C, H, W)
+        dep_np[self._no_ray] = 0.0
         dep = wp.array(dep_np, dtype=float, device=dev)
         counts = (dep_np > 0).sum(axis=(1, 2))
         inv_count = np.where(counts > 0, 1.0 / np.maximum(counts, 1), 0.0).astype(np.float32)

@@ -7,6 +7,7 @@ import pytest
 from camera_eval import eval_camera
 from warp_devices import devices
 from mcgs_warp.kernels import make_camera, reference
+from mcgs_warp.kernels.stereo import camera_rays
 from scenes import cameras
 
 MODELS = ["pinhole", "fisheye", "equirectangular"]
@@ -92,6 +93,55 @@ def test_domain_rejects_behind_camera_and_folded_distortion():
     out = eval_camera(cam, p, np.zeros((len(p), 2, 3)))
     assert out["ok"].tolist() == [1, 0, 0, 0, 0]
     np.testing.assert_array_equal(reference.in_domain(cam, p), out["ok"].astype(bool))
+
+
+def has_ray_reference(cam, uv):
+    """float64: does pixel ``uv`` [M,2] of a radial-only pinhole or fisheye camera have a
+    ray in the model's domain? Its normalized radius must be reached by the monotonic part
+    of the distortion curve (pinhole: |n|^2 <= max_r2; fisheye: angles below 90 degrees)."""
+    k = np.array([cam.dist[i] for i in range(5)], np.float64)
+    r_d = np.hypot((uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy)
+    if cam.model == 1:  # fisheye: theta_d(theta), theta < 90 degrees
+        t = np.linspace(0.0, np.pi / 2, 200001)[:-1]
+        curve = t * (1 + k[0] * t**2 + k[1] * t**4 + k[2] * t**6 + k[3] * t**8)
+    else:
+        r = np.sqrt(np.linspace(0.0, cam.max_r2, 200001))
+        curve = r * (1 + k[0] * r**2 + k[1] * r**4 + k[4] * r**6)
+    return r_d <= curve.max()
+
+
+@pytest.mark.parametrize("device", devices())
+@pytest.mark.parametrize(
+    "model, size, intrinsics, dist, no_ray",
+    [
+        # TUM-VI-like fisheye (195 degrees): the image corners lie beyond 90 degrees off the axis
+        ("fisheye", (128, 128), (48.0, 48.0, 63.7, 64.2), (0.0034, 0.0007, -0.0017, 0.0003), (0.04, 0.10)),
+        # strong barrel distortion: most pixels are reached only past the fold of r (1 + k1 r^2)
+        ("pinhole", (160, 120), (62.5, 62.5, 80.0, 60.0), (-0.35, 0.0, 0.0, 0.0, 0.0), (0.5, 0.9)),
+    ],
+)
+def test_pixels_without_a_ray_unproject_to_nan(model, size, intrinsics, dist, no_ray, device):
+    """camera_unproject gives NaN exactly where the model has no ray (up to pixels next to
+    the boundary), and every ray it gives projects back onto its pixel; camera_in_domain
+    rejects the NaN point, so no consumer can match or optimise it."""
+    cam = make_camera(model, *size, intrinsics, dist)
+    v, u = np.mgrid[0 : size[1], 0 : size[0]]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    rays = camera_rays(cam, device).numpy().reshape(-1, 3)
+    finite = np.isfinite(rays).all(1)
+    assert (np.isnan(rays[~finite])).all()  # NaN in all three coordinates, never inf
+    ref = has_ray_reference(cam, uv)
+    assert no_ray[0] < 1 - ref.mean() < no_ray[1]
+    r_d = np.hypot((uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy)
+    edge = np.abs(r_d - r_d[ref].max()) < 1.0 / cam.fx  # within a pixel of the boundary
+    assert (finite[~edge] == ref[~edge]).all(), (finite != ref).sum()
+    n2 = (rays[finite, :2] ** 2).sum(1)
+    assert (n2 <= np.float32(cam.max_r2)).all()
+    np.testing.assert_allclose(reference.project(cam, rays[finite]), uv[finite], atol=0.01)
+    p = np.concatenate([rays[~finite][:3] * 2.0, rays[finite][:1] * 2.0])
+    out = eval_camera(cam, p, np.zeros((len(p), 2, 3)), device)
+    assert out["ok"].tolist() == [0, 0, 0, 1]
+    assert not reference.in_domain(cam, p[:3]).any()
 
 
 @pytest.mark.parametrize(
