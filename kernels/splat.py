@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .blend import blend_backward_kernel, blend_kernel, gather_splats_kernel, splat_record
+from .blend import blend_backward_kernel, blend_backward_tiles_kernel, blend_kernel, blend_tiles_kernel, gather_splats_kernel, splat_record
 from .camera import FAR, NEAR, Camera
 from .launch import cpu_workers, run_row_bands
 from .projection import project_gaussians_backward_kernel, project_gaussians_kernel
@@ -253,16 +253,15 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
     )
     tiles = (views.tiles_x, views.tiles_x * views.tiles_y)
 
-    def band(worker, row0, rows):
-        wp.launch(
-            blend_kernel,
-            dim=(views.n, rows, views.width),
-            inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0],
-            outputs=[out.color, out.depth, out.alpha, out.transmittance, out.n_contrib],
-            device=dev,
-        )
+    outputs = [out.color, out.depth, out.alpha, out.transmittance, out.n_contrib]
+    if dev.is_cuda:  # one thread per pixel
+        wp.launch(blend_kernel, dim=shape, inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, 0], outputs=outputs, device=dev)
+        return out
 
-    run_row_bands(dev, views.height, band)
+    def band(worker, row0, rows):  # CPU: one thread per tile, bands of tile rows on all cores
+        wp.launch(blend_tiles_kernel, dim=(views.n, rows, views.tiles_x), inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0], outputs=outputs, device=dev)
+
+    run_row_bands(dev, views.tiles_y, band)
     return out
 
 
@@ -315,27 +314,30 @@ def blend_backward(rendered: Rendered, views: Views, grad_color=None, grad_depth
     out = zeros()
     if bins.count == 0:
         return out
+    inputs = [
+        rendered.records, rendered.record_colors, bins.values, bins.tile_start, views.cameras, n,
+        views.tiles_x, views.tiles_x * views.tiles_y,
+    ]  # fmt: skip
+    forward = [rendered.color, rendered.depth, rendered.alpha, rendered.transmittance, rendered.n_contrib, gC, gD, gA]
+    if dev.is_cuda:  # one thread per pixel
+        wp.launch(blend_backward_kernel, dim=shape, inputs=[*inputs, 0, *forward], outputs=[out.mean2d, out.conic, out.opacity, out.depth, out.colors], device=dev)
+        return out
     # Warp's CPU atomics are plain adds, so each CPU worker accumulates into buffers of
     # its own, summed afterwards in worker order (deterministic for a worker count).
-    workers = 1 if dev.is_cuda else cpu_workers()
-    per_worker = [out] + [zeros() for _ in range(1, workers)]
+    per_worker = [out] + [zeros() for _ in range(1, cpu_workers())]
+    scratch = [wp.empty(shape, dtype=float, device=dev), wp.empty(shape, dtype=wp.vec3, device=dev), wp.empty(shape, dtype=float, device=dev)]
 
-    def band(worker, row0, rows):
+    def band(worker, row0, rows):  # CPU: one thread per tile, bands of tile rows on all cores
         g = per_worker[worker]
         wp.launch(
-            blend_backward_kernel,
-            dim=(views.n, rows, views.width),
-            inputs=[
-                rendered.records, rendered.record_colors, bins.values, bins.tile_start, views.cameras, n,
-                views.tiles_x, views.tiles_x * views.tiles_y, row0,
-                rendered.color, rendered.depth, rendered.alpha, rendered.transmittance,
-                rendered.n_contrib, gC, gD, gA,
-            ],
+            blend_backward_tiles_kernel,
+            dim=(views.n, rows, views.tiles_x),
+            inputs=[*inputs, row0, *forward, *scratch],
             outputs=[g.mean2d, g.conic, g.opacity, g.depth, g.colors],
             device=dev,
-        )  # fmt: skip
+        )
 
-    used = run_row_bands(dev, views.height, band)
+    used = run_row_bands(dev, views.tiles_y, band)
     for g in per_worker[1:used]:
         for name in ("mean2d", "conic", "opacity", "depth", "colors"):
             getattr(out, name).numpy()[...] += getattr(g, name).numpy()  # CPU only: zero-copy views
