@@ -343,6 +343,7 @@ def blend_backward_tiles_kernel(
     run_T: wp.array(dtype=float, ndim=3),  # [C,H,W] scratch: transmittance before the splat
     run_S: wp.array(dtype=wp.vec3, ndim=3),  # [C,H,W] scratch: colour accumulated so far
     run_Sd: wp.array(dtype=float, ndim=3),  # [C,H,W] scratch: depth accumulated so far
+    pixel: wp.array(dtype=wp.vec4, ndim=3),  # [C,H,W] scratch: the pixel's g_dacc, g_a, depth sum, final T
     grad_mean2d: wp.array(dtype=wp.vec2),  # [C*N] out (accumulated)
     grad_conic: wp.array(dtype=wp.vec3),
     grad_opacity: wp.array(dtype=float),
@@ -369,7 +370,13 @@ def blend_backward_tiles_kernel(
             run_T[c, y, x] = 1.0
             run_S[c, y, x] = wp.vec3(0.0)
             run_Sd[c, y, x] = 0.0
-            n_max = wp.max(n_max, n_contrib[c, y, x])
+            n = n_contrib[c, y, x]
+            if n > 0:  # then alpha > 0
+                A = out_alpha[c, y, x]
+                Dn = out_depth[c, y, x]
+                gd = grad_depth[c, y, x]
+                pixel[c, y, x] = wp.vec4(gd / A, grad_alpha[c, y, x] - gd * Dn / A, Dn * A, out_T[c, y, x])
+            n_max = wp.max(n_max, n)
     start = tile_start[c * tiles_per_camera + ty * tiles_x + tx]
     for j in range(start, start + n_max):
         r = records[j]
@@ -392,12 +399,10 @@ def blend_backward_tiles_kernel(
                     continue
                 hit = 1
                 gC = grad_color[c, y, x]
-                A = out_alpha[c, y, x]
-                Dn = out_depth[c, y, x]
-                g_dacc = grad_depth[c, y, x] / A
-                g_a = grad_alpha[c, y, x] - grad_depth[c, y, x] * Dn / A
+                q = pixel[c, y, x]
+                g_dacc = q[0]
                 w, S, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(
-                    r, ci, alpha, g, px, py, run_T[c, y, x], run_S[c, y, x], run_Sd[c, y, x], gC, out_color[c, y, x], Dn * A, g_dacc, g_a, out_T[c, y, x]
+                    r, ci, alpha, g, px, py, run_T[c, y, x], run_S[c, y, x], run_Sd[c, y, x], gC, out_color[c, y, x], q[2], g_dacc, q[1], q[3]
                 )
                 run_T[c, y, x] = T
                 run_S[c, y, x] = S

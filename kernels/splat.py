@@ -325,7 +325,7 @@ def blend_backward(rendered: Rendered, views: Views, grad_color=None, grad_depth
     # Warp's CPU atomics are plain adds, so each CPU worker accumulates into buffers of
     # its own, summed afterwards in worker order (deterministic for a worker count).
     per_worker = [out] + [zeros() for _ in range(1, cpu_workers())]
-    scratch = [wp.empty(shape, dtype=float, device=dev), wp.empty(shape, dtype=wp.vec3, device=dev), wp.empty(shape, dtype=float, device=dev)]
+    scratch = [wp.empty(shape, dtype=t, device=dev) for t in (float, wp.vec3, float, wp.vec4)]
 
     def band(worker, row0, rows):  # CPU: one thread per tile, bands of tile rows on all cores
         g = per_worker[worker]
