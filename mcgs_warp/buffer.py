@@ -65,6 +65,11 @@ class KeyframeBuffer:
         self.depth_prior = np.zeros((capacity, C, self.h, self.w), dtype=np.float32)  # m, 0 = none
         self.prior_conf = np.ones((capacity, C, self.h, self.w), dtype=np.float32)  # its weight in [0,1]
         self.scales = np.ones((capacity, C) + tuple(scale_grid))  # JDSA scale grids
+        self.exposure = wp.zeros((capacity, C, 2), dtype=float, device=self.device)  # per image (log a, b): colour a * C + b
+        #: keyframe -> full-resolution mapping depth targets per camera ([H,W] m, 0 = none;
+        #: ``None`` for a camera without); a keyframe is mapped once it has an entry, and a
+        #: new list (not an edited one) is what tells the mapping loss to re-upload it
+        self.targets: dict[int, list] = {}
         self.timestamps: list[float] = []
         self.frame_index: list[int] = []
         self.images: list[list[np.ndarray]] = []

@@ -76,9 +76,9 @@ class Mapper:
     """Mapping over the keyframes of ``buffer``: ``add_keyframe`` registers a keyframe and
     its depth targets, ``step``/``optimize`` run Adam iterations.
 
-    ``exposure``: [capacity, C, 2] float32 device array of ``(log a, b)`` per image
-    (colour ``a * C + b``); ``depths``: keyframe -> full-resolution depth per camera
-    ([H,W] m, 0 = none; ``None`` for a camera without); assign a new list to change them."""
+    The keyframe state it trains against lives in the buffer: ``buffer.exposure`` (per
+    image ``(log a, b)``, colour ``a * C + b``) and ``buffer.targets`` (the registered
+    keyframes' depth targets)."""
 
     def __init__(self, buffer: KeyframeBuffer, gmap: GaussianMap | None = None, config: MappingConfig | None = None, seed: int = 0):
         self.buf = buffer
@@ -86,9 +86,7 @@ class Mapper:
         self.cfg = config or MappingConfig()
         self.rng = np.random.default_rng(seed)
         self.cams = buffer.rig.warp_cameras()
-        self.depths: dict[int, list] = {}  # keyframe -> full-res depth targets per camera
-        C, dev = len(buffer.rig), buffer.device
-        self.exposure = wp.zeros((buffer.capacity, C, 2), dtype=float, device=dev)
+        dev = buffer.device
         self.optimize_exposure = False
         self.optimize_poses = False
         self.fixed_poses: set[int] = {0}
@@ -124,7 +122,7 @@ class Mapper:
     def add_keyframe(self, k: int, depths) -> int:
         """Register keyframe ``k`` of the buffer with full-resolution depth targets
         ``depths[c]`` [H,W] (m, 0 = none) and add Gaussians where the map is empty."""
-        self.depths[k] = list(depths)
+        self.buf.targets[k] = list(depths)
         images = self.buf.images[k]
         mask = None
         if len(self.map):
@@ -149,14 +147,14 @@ class Mapper:
         t0 = time.perf_counter()
         cfg, buf, dev = self.cfg, self.buf, self.buf.device
         if k is None:
-            keys = sorted(self.depths)
+            keys = sorted(self.buf.targets)
             k = keys[self.rng.integers(len(keys))]
         g = self.map.gaussians
         views = self.views(k)
         out = render(g, views)
         t1 = time.perf_counter()
-        targets = self.loss.targets(k, buf.images[k], self.depths[k])
-        res = self.loss(out.color, out.depth, targets, self.exposure[k], cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal)
+        targets = self.loss.targets(k, buf.images[k], buf.targets[k])
+        res = self.loss(out.color, out.depth, targets, buf.exposure[k], cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal)
         t2 = time.perf_counter()
         params = {"means": g.means, "log_scales": g.log_scales, "quats": g.quats, "opacity_logits": g.opacity_logits, "colors": g.colors}
         train_map = any(self.adam.lrs.get(name, 0) > 0 for name in params)
@@ -188,7 +186,7 @@ class Mapper:
             self.adam.step(params, {name: getattr(grads, name) for name in params})
             self.map.accumulate_view_gradients(grads.mean2d, out.projection.visible, views.n)
         if self.optimize_exposure:
-            self.adam.step_group(f"exposure{k}", self.exposure[k], res.grad_exposure, cfg.lr_exposure)
+            self.adam.step_group(f"exposure{k}", buf.exposure[k], res.grad_exposure, cfg.lr_exposure)
         if step_pose:
             self._step_pose(k, grads.pose)
         self.iteration += 1
@@ -224,20 +222,19 @@ class Mapper:
 
         out = {f"map.{k}": v for k, v in self.map.to_numpy().items()}
         out.update({f"adam.{k}": v for k, v in self.adam.state_arrays().items()})
-        out["exposure"] = self.exposure.numpy().copy()
         out["grad_accum"], out["grad_count"] = self.map.statistics()
         out["history"] = np.array([(r.loss, r.psnr, r.keyframe) for r in self.history], np.float64).reshape(-1, 3)
-        out["json"] = np.array(json.dumps({"iteration": self.iteration, "rng": self.rng.bit_generator.state, "rejected": self.rejected_steps, "registered": sorted(self.depths)}))
+        out["json"] = np.array(json.dumps({"iteration": self.iteration, "rng": self.rng.bit_generator.state, "rejected": self.rejected_steps, "registered": sorted(self.buf.targets)}))
         return out
 
     def load_state_arrays(self, a: dict, depths: dict) -> None:
-        """Restore what :meth:`state_arrays` gave; ``depths``: keyframe -> depth targets."""
+        """Restore what :meth:`state_arrays` gave; ``depths``: keyframe -> depth targets (of
+        which the registered keyframes' go to ``buffer.targets``)."""
         import json
 
         self.map.set_numpy({k[4:]: a[k] for k in a if k.startswith("map.")})
         self.map.set_statistics(a["grad_accum"], a["grad_count"])
         self.adam.load_state_arrays({k[5:]: a[k] for k in a if k.startswith("adam.")}, self.buf.device)
-        self.exposure.assign(np.asarray(a["exposure"], np.float32))
         self.history = [StepResult(float(l_), float(p_), int(k_)) for l_, p_, k_ in a["history"]]
         meta = json.loads(str(a["json"]))
         self.iteration = meta["iteration"]
@@ -245,7 +242,8 @@ class Mapper:
         for name, (m, v, t) in meta.get("host_adam", {}).items():  # checkpoints from before the one Adam
             self.adam.state[name] = tuple(wp.array(np.ravel(x), dtype=float, device=self.buf.device) for x in (m, v)) + (t,)
         self.rejected_steps = meta["rejected"]
-        self.depths = {k: depths[k] for k in meta["registered"]}
+        self.buf.targets.clear()
+        self.buf.targets.update({k: depths[k] for k in meta["registered"]})
         self.loss.forget()
 
     # ----------------------------------------------------------------------------------
@@ -258,7 +256,7 @@ class Mapper:
         return report
 
     def optimize(self, iterations: int, keyframes=None, progress=None) -> list[StepResult]:
-        keys = sorted(self.depths) if keyframes is None else list(keyframes)
+        keys = sorted(self.buf.targets) if keyframes is None else list(keyframes)
         results = []
         for it in range(iterations):
             results.append(self.step(keys[self.rng.integers(len(keys))]))

@@ -31,6 +31,6 @@ def joint_refinement(mapper: Mapper, iterations: int, poses: bool = True, exposu
 
 def exposure_gains(mapper: Mapper) -> np.ndarray:
     """Per-image affine exposure ``(a, b)`` [K,C,2] of the registered keyframes."""
-    e = mapper.exposure.numpy()[: len(mapper.buf)].astype(np.float64)
+    e = mapper.buf.exposure.numpy()[: len(mapper.buf)].astype(np.float64)
     e[..., 0] = np.exp(e[..., 0])
     return e

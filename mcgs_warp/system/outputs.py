@@ -48,7 +48,7 @@ def keyframe_views(slam):
     yields (k, c, rendered colour, rendered depth, input image, frame index)."""
     m, buf = slam.mapper, slam.buf
     poses = buf.get_poses()
-    exposure = m.exposure.numpy()  # [capacity, C, 2] (log a, b)
+    exposure = m.buf.exposure.numpy()  # [capacity, C, 2] (log a, b)
     for k in range(len(buf)):
         out = render(m.map.gaussians, Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
         col, dep = out.color.numpy(), out.depth.numpy()

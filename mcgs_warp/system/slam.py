@@ -173,7 +173,7 @@ class SLAM:
         the new estimate. Exact sensor depth is its own target: nothing follows."""
         if self.exact_depth:
             return
-        mapped = [k for k in keyframes if k in self.mapper.depths]
+        mapped = [k for k in keyframes if k in self.buf.targets]
         if not mapped:
             return
         disp, poses = self.buf.disp.numpy(), self.buf.get_poses()  # read once, not per keyframe
@@ -184,7 +184,7 @@ class SLAM:
             self.mapper.map.follow_depth(k, poses[k], self.seq.rig, self.buf.cameras, ratio)
             # what the Gaussians now stand for: the part of the change the filter or clip held back stays due
             self._mapped_depth[k] = np.where((old > 0) & (new > 0), old * ratio, new)
-            self.mapper.depths[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k, disp[k], weight[k])
+            self.buf.targets[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k, disp[k], weight[k])
 
     def add_keyframe(self, frame) -> int:
         buf, tc = self.buf, self.cfg.tracking
@@ -277,13 +277,13 @@ class SLAM:
                 greys[(k, c)] = grey(buf.images[k][c], 1)
             return greys[(k, c)]
 
-        todo = sorted(k for k in keyframes if k in self.mapper.depths)
+        todo = sorted(k for k in keyframes if k in self.buf.targets)
 
         def views_of(k, c, mapped: bool = False):
             """The views (keyframe, camera) that judge view (k, c), and T_src_ref [S,4,4]."""
             views = [(k2, c) for k2 in range(max(0, k - radius), min(len(buf), k + radius + 1)) if k2 != k]
             views += [(k, b) for a, b in self.stereo.pairs if a == c]
-            views = [v for v in views if v[0] in self.mapper.depths] if mapped else views
+            views = [v for v in views if v[0] in self.buf.targets] if mapped else views
             return views, np.stack([np.linalg.inv(T_w_c[v]) @ T_w_c[(k, c)] for v in views]) if views else np.zeros((0, 4, 4))
 
         for n, k in enumerate(todo):
@@ -292,9 +292,9 @@ class SLAM:
             targets = []
             for c in range(len(rig)):
                 views, T_src_ref = views_of(k, c)
-                depth = np.asarray(self.mapper.depths[k][c], np.float32)
+                depth = np.asarray(self.buf.targets[k][c], np.float32)
                 targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, ref_colour=buf.images[k][c], device=buf.device))
-            self.mapper.depths[k] = targets
+            self.buf.targets[k] = targets
             self.progress("photo depth", n + 1, len(todo))
         if min_views <= 0:
             return
@@ -303,8 +303,8 @@ class SLAM:
             kept[k] = []
             for c in range(len(rig)):
                 views, T_src_ref = views_of(k, c, mapped=True)
-                kept[k].append(consistent_depth(rays[c], self.mapper.depths[k][c], [rays[v[1]] for v in views], [self.mapper.depths[v[0]][v[1]] for v in views], [cams[v[1]] for v in views], T_src_ref, min_views=min_views, device=buf.device))
-        self.mapper.depths.update(kept)
+                kept[k].append(consistent_depth(rays[c], self.buf.targets[k][c], [rays[v[1]] for v in views], [self.buf.targets[v[0]][v[1]] for v in views], [cams[v[1]] for v in views], T_src_ref, min_views=min_views, device=buf.device))
+        self.buf.targets.update(kept)
 
     def _measured_weight(self, keyframes) -> dict:
         """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or
@@ -334,12 +334,13 @@ class SLAM:
             depth_prior=buf.depth_prior[:K].copy(),
             prior_conf=buf.prior_conf[:K].copy(),
             scales=buf.scales[:K].copy(),
+            exposure=buf.exposure.numpy()[:K].copy(),
             timestamps=np.array(buf.timestamps),
             frame_index=np.array(buf.frame_index, dtype=np.int64),
             kf_frames=np.array(kf_frames, dtype=np.int64),
             **self.graph.state_arrays(correspondence_store(path)),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
-            **{f"targets_cam{c}": np.array([self.mapper.depths[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
+            **{f"targets_cam{c}": np.array([self.buf.targets[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
             meta=np.array(json.dumps({"next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
         )
@@ -369,6 +370,11 @@ class SLAM:
             buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
         buf.scales[: len(a["scales"])] = a["scales"]
+        if "exposure" not in a:
+            raise InputError(path, "exposure", "checkpoint was written by an older version (exposures kept by the mapper); start without --resume")
+        exposure = buf.exposure.numpy()
+        exposure[: len(a["exposure"])] = a["exposure"]
+        buf.exposure.assign(exposure)
         if "graph_edges" not in a:
             raise InputError(path, None, "checkpoint was written by an older version (no factor graph); start without --resume")
         try:
@@ -415,8 +421,8 @@ class SLAM:
                 self.mapper.add_keyframe(m, self.mapping_depths(self.seq[self.buf.frame_index[m]], m))
                 self._mapped_depth[m] = self.buf.depth(m)
             window = sliding_window(len(self.buf), self.cfg.tracking.window)
-            if self.mapper.depths:
-                self.mapper.optimize(mcfg.iterations_per_keyframe, keyframes=[w for w in window if w in self.mapper.depths])
+            if self.buf.targets:
+                self.mapper.optimize(mcfg.iterations_per_keyframe, keyframes=[w for w in window if w in self.buf.targets])
             t2 = time.perf_counter()
             self.seconds["tracking"] += t1 - t0
             self.seconds["mapping"] += t2 - t1

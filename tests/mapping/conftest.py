@@ -29,7 +29,7 @@ def make_mapper(seq, config=None, params=None):
     else:
         m.map.set_numpy(params)
         for k, f in enumerate(KEYFRAMES):
-            m.depths[k] = seq[f].depths
+            m.buf.targets[k] = seq[f].depths
     return m
 
 

@@ -35,9 +35,9 @@ def test_step_matches_the_host_loss(fitted, mapping_seq):
     cfg = MappingConfig(lambda_scale=0.0, densify_every=0, lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0, lr_exposure=1e-3)
     m = make_mapper(mapping_seq, cfg, fitted.map.to_numpy())
     exposure = np.array([[0.05, 0.01], [-0.03, 0.02], [0.0, -0.01]], np.float32)
-    e = m.exposure.numpy()
+    e = m.buf.exposure.numpy()
     e[1] = exposure
-    m.exposure.assign(e)
+    m.buf.exposure.assign(e)
     views = m.views(1)
     T_c_w = np.linalg.inv(m.buf.rig.camera_poses(m.buf.get_poses()[1]))
     np.testing.assert_allclose(views.viewmats.numpy(), T_c_w, atol=1e-5)
@@ -45,14 +45,14 @@ def test_step_matches_the_host_loss(fitted, mapping_seq):
     sizes = [(s.height, s.width) for s in m.buf.rig.cameras]
     rays = [m.full_rays(c) for c in range(len(sizes))]
     total, _, _, grad_exposure, psnr = keyframe_loss(
-        out.color.numpy(), out.depth.numpy(), sizes, m.buf.images[1], m.depths[1], rays, exposure.astype(np.float64), cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal
+        out.color.numpy(), out.depth.numpy(), sizes, m.buf.images[1], m.buf.targets[1], rays, exposure.astype(np.float64), cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal
     )
     m.optimize_exposure = True
     r = m.step(1)
     assert np.isclose(r.loss, total, rtol=1e-5) and np.isclose(r.psnr, psnr.mean(), rtol=1e-5)
     # one Adam step moves each exposure parameter by lr against its gradient's sign
-    np.testing.assert_allclose(m.exposure.numpy()[1], exposure - 1e-3 * np.sign(grad_exposure), atol=1e-6)
-    assert not m.exposure.numpy()[[0, 2, 3]].any()
+    np.testing.assert_allclose(m.buf.exposure.numpy()[1], exposure - 1e-3 * np.sign(grad_exposure), atol=1e-6)
+    assert not m.buf.exposure.numpy()[[0, 2, 3]].any()
 
 
 def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
