@@ -41,6 +41,10 @@ colour-adaptive support weights (:func:`rescore_pick_kernel`, :func:`adaptive_wi
 other views' depth maps confirm (geometric consistency, as multi-view stereo fusion does:
 Schönberger et al., ECCV 2016; Yao et al., ECCV 2018), :func:`depth_agreement_kernel`.
 
+:func:`refine_points` refines the depth of a few reference pixels at full resolution
+(per-pixel candidates along the epipolar curve, :func:`point_cost_kernel`): the rig's
+cross-view matches at the MCBA grid pixels.
+
 :func:`patch_sad` scores many matches between views at once (:func:`patch_sad_kernel`: the
 mean-removed SAD of two 7 x 7 patches), the photometric confidence of the guided flow.
 """
@@ -57,6 +61,7 @@ wp.set_module_options({"enable_backward": False})
 
 #: Cost of a hypothesis without information (outside the source, flat window).
 NO_COST = wp.constant(3.0)
+vec6f = wp.types.vector(6, dtype=wp.float32)
 
 
 @wp.func
@@ -938,3 +943,100 @@ def consistent_depth(ref_rays: wp.array, depth: np.ndarray, src_rays, src_depths
         d_w = wp.array(np.ascontiguousarray(d_s, dtype=np.float32), dtype=float, device=device)
         wp.launch(depth_agreement_kernel, dim=(H, W), inputs=[ref_rays, depth_w, rays_s, d_w, cam_s, M, M_inv, float(tol)], outputs=[count], device=device)
     return np.where(count.numpy() >= need, depth, 0.0).astype(np.float32)
+
+
+@wp.kernel
+def point_cost_kernel(
+    ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference, full resolution
+    src: wp.array(dtype=float, ndim=3),  # [1,Hs,Ws] grey source
+    ref_rays: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] unit-depth rays of the reference
+    pix: wp.array(dtype=wp.vec2i),  # [M] reference pixels (x, y)
+    rho: wp.array(dtype=float, ndim=2),  # [M,K] inverse-depth candidates per pixel (1/m)
+    T_src_ref: wp.mat44,
+    cam: Camera,  # the source camera
+    radius: int,
+    min_std: float,
+    cost: wp.array(dtype=float, ndim=2),  # [M,K] out: 1 - ZNCC, or NO_COST
+):
+    """``1 - ZNCC`` of a ``(2r+1)^2`` window around each listed reference pixel against the
+    source, the window lifted to the candidate's fronto-parallel plane (sphere for
+    equirectangular) and sampled bilinearly in the source: :func:`sweep` for a few
+    pixels and per-pixel hypotheses, at full resolution."""
+    m, k = wp.tid()
+    p = pix[m]
+    r = rho[m, k]
+    H = ref.shape[0]
+    W = ref.shape[1]
+    sums = vec6f()  # n, a, a^2, b, b^2, ab over the valid window pixels
+    total = float(0.0)
+    if r > 0.0:
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                yy = p[1] + dy
+                xx = p[0] + dx
+                if yy >= 0 and yy < H and xx >= 0 and xx < W:
+                    total += 1.0
+                    X = wp.transform_point(T_src_ref, ref_rays[yy, xx] / r)
+                    if camera_in_domain(cam, X, NEAR, FAR):
+                        uv = camera_project(cam, X)
+                        b = sample_bilinear(src, 0, uv[0], uv[1], cam.width, cam.height)
+                        if b >= 0.0:
+                            a = ref[yy, xx]
+                            sums += vec6f(1.0, a, a * a, b, b * b, a * b)
+    c = float(NO_COST)
+    if sums[0] >= 0.75 * total and sums[0] > 1.0:
+        c = zncc_cost(sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], min_std)
+    cost[m, k] = c
+
+
+def refine_points(ref_image: np.ndarray, ref_rays: wp.array, src_image: np.ndarray, src_cam: Camera, T_src_ref: np.ndarray, pix: np.ndarray, rho0: np.ndarray, step_px: float = 0.25, count: int = 12, radius: int = 4, min_std: float = 0.02, device=None):
+    """Refine inverse depths ``rho0`` [M] (1/m) of reference pixels ``pix`` [M,2] (x, y)
+    at full resolution along the epipolar curve: ``2 count + 1`` candidates ``rho0 + i
+    step``, ``step`` per pixel such that the point moves ``step_px`` pixels in the source,
+    scored by :func:`point_cost_kernel`; the best is refined by a parabola through its
+    neighbours. Returns ``(rho, cost)`` [M]; ``rho`` is 0 where the best candidate is at
+    either end of the range (the start was too far off to refine) or none could be scored."""
+    from . import reference
+
+    pix = np.asarray(pix, np.int64).reshape(-1, 2)
+    rho0 = np.asarray(rho0, np.float64).reshape(-1)
+    T = np.asarray(T_src_ref, np.float64)
+    rays = ref_rays.numpy()[pix[:, 1], pix[:, 0]].astype(np.float64)
+
+    def landing(r):  # where each pixel's point at inverse depth r lands in the source (px)
+        X = rays / r[:, None]
+        return reference.project(src_cam, X @ T[:3, :3].T + T[:3, 3])
+
+    with np.errstate(all="ignore"):
+        rate = np.linalg.norm(landing(rho0 * 1.01) - landing(rho0 * 0.99), axis=1) / (0.02 * rho0)  # px per 1/m
+    step = np.where(np.isfinite(rate) & (rate > 0), step_px / np.where(rate > 0, rate, 1.0), 0.0)
+    device = wp.get_device(device)
+    M = len(pix)
+    if M == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    offsets = np.arange(-count, count + 1, dtype=np.float64)
+    rho = (rho0[:, None] + offsets[None] * step[:, None]).astype(np.float32)
+    cost = wp.empty(rho.shape, dtype=float, device=device)
+    inputs = [
+        wp.array(np.ascontiguousarray(ref_image, np.float32), dtype=float, device=device),
+        wp.array(np.ascontiguousarray(src_image, np.float32)[None], dtype=float, device=device),
+        ref_rays,
+        wp.array(np.ascontiguousarray(pix, np.int32), dtype=wp.vec2i, device=device),
+        wp.array(rho, dtype=float, device=device),
+        wp.mat44(*np.asarray(T_src_ref, np.float32).ravel()),
+        src_cam,
+        int(radius),
+        float(min_std),
+    ]
+    wp.launch(point_cost_kernel, dim=rho.shape, inputs=inputs, outputs=[cost], device=device)
+    c = cost.numpy()
+    kb = c.argmin(1)
+    rows = np.arange(M)
+    inner = (kb > 0) & (kb < 2 * count)
+    km, kp = np.clip(kb - 1, 0, 2 * count), np.clip(kb + 1, 0, 2 * count)
+    cm, c0, cp = c[rows, km], c[rows, kb], c[rows, kp]
+    curv = cm - 2 * c0 + cp
+    ok = inner & (cm < NO_COST) & (cp < NO_COST) & (curv > 1e-9)
+    offset = np.where(ok, np.clip(0.5 * (cm - cp) / np.where(ok, curv, 1.0), -0.5, 0.5), 0.0)
+    out = np.where(inner & (c0 < NO_COST) & (step > 0), rho[rows, kb] + offset * step, 0.0).astype(np.float32)
+    return out, c0.astype(np.float32)

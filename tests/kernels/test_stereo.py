@@ -380,3 +380,43 @@ def test_patch_sad_is_zero_at_the_true_shift_only():
     assert patch_sad([a, b + 0.1], [0], [1], uv, uv + [5, 3]).max() < 1e-5  # a brighter view: the same match
     wrong = patch_sad([a, b], [0], [1], uv, uv + [7, 3])
     assert wrong.min() > 0.005 and wrong.mean() > 0.02, (wrong.min(), wrong.mean())
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_point_refinement_sharpens_the_sweep_depth_at_full_resolution(model):
+    """refine_points, started from the half-resolution sweep's depth at grid pixels (what
+    the cross-view matches read), lands closer to the ray-cast depth without a bias; a
+    start further off than its search range gets no depth."""
+    from mcgs_warp.frontend.stereo import grey
+    from mcgs_warp.kernels.stereo import camera_rays, refine_points
+
+    rig = two_camera_rig(model, baseline=0.4)
+    T_w_b = np.eye(4)
+    T_w_b[:3, :3] = yaw_pitch_roll(0.9)
+    T_w_b[:3, 3] = (4.0, 0.3, 1.4)
+    images, depths = render(rig, T_w_b)
+    est, conf = RigStereo(rig, np.ones((2, 2)), StereoConfig(far=60.0)).depth(0, images)
+    v, u = np.mgrid[4 : rig.cameras[0].height : 8, 4 : rig.cameras[0].width : 8]
+    ok = (conf[0][v, u] > 0) & (depths[0][v, u] > 0)
+    pix = np.stack([u[ok], v[ok]], 1)
+    gt, z0 = depths[0][v, u][ok], est[0][v, u][ok]
+    assert len(pix) > 40
+    cams = [c.warp_camera() for c in rig.cameras]
+    T = np.linalg.inv(rig.cameras[1].T_b_c) @ rig.cameras[0].T_b_c
+    rays = camera_rays(cams[0], "cpu")
+
+    def refine(rho0, count=12):
+        return refine_points(grey(images[0], 1), rays, grey(images[1], 1), cams[1], T, pix, rho0, 0.25, count)[0]
+
+    rho = refine(1.0 / z0)
+    kept = rho > 0
+    assert kept.mean() > 0.85, kept.mean()
+    before = np.abs(z0 / gt - 1)
+    after = np.abs(1.0 / rho[kept] / gt[kept] - 1)
+    assert np.median(after) < 0.8 * np.median(before[kept]), (np.median(after), np.median(before[kept]))
+    assert abs(np.median(1.0 / rho[kept] / gt[kept] - 1)) < 0.005
+    # a start two steps past the range (count 2: +-0.5 px) has its best candidate at the end: no depth
+    rho_gt = 1.0 / gt
+    far_off = refine(rho_gt * 0.8, count=2)
+    near_start = refine(rho_gt, count=2)
+    assert (far_off == 0).mean() > 0.8 and (near_start > 0).mean() > 0.6
