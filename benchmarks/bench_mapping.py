@@ -55,7 +55,7 @@ def main():
 
     # Mapping iterations interleaved with the renderer alone (forward + backward of a colour
     # gradient) on the same keyframe's views and Gaussians, so both see the same machine load.
-    keys = sorted(m.depths)
+    keys = sorted(m.buf.targets)
     views = m.views(keys[0])
     grad_color = wp.array(np.ones((views.n, views.height, views.width, 3), np.float32), dtype=wp.vec3)
     rows, totals, times = [], [], []

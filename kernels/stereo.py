@@ -1010,7 +1010,7 @@ def refine_points(ref_image: np.ndarray, ref_rays: wp.array, src_image: np.ndarr
     with np.errstate(all="ignore"):
         rate = np.linalg.norm(landing(rho0 * 1.01) - landing(rho0 * 0.99), axis=1) / (0.02 * rho0)  # px per 1/m
     step = np.where(np.isfinite(rate) & (rate > 0), step_px / np.where(rate > 0, rate, 1.0), 0.0)
-    device = wp.get_device(device)
+    device = ref_rays.device if device is None else wp.get_device(device)
     M = len(pix)
     if M == 0:
         return np.zeros(0, np.float32), np.zeros(0, np.float32)

@@ -370,10 +370,9 @@ class SLAM:
             buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
         buf.scales[: len(a["scales"])] = a["scales"]
-        if "exposure" not in a:
-            raise InputError(path, "exposure", "checkpoint was written by an older version (exposures kept by the mapper); start without --resume")
+        saved = a["exposure"] if "exposure" in a else a["mapper.exposure"]  # the mapper's until 2026-11-27
         exposure = buf.exposure.numpy()
-        exposure[: len(a["exposure"])] = a["exposure"]
+        exposure[: len(saved)] = saved[: len(exposure)]
         buf.exposure.assign(exposure)
         if "graph_edges" not in a:
             raise InputError(path, None, "checkpoint was written by an older version (no factor graph); start without --resume")

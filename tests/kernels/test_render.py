@@ -176,24 +176,24 @@ def test_cpu_tile_kernels_equal_the_per_pixel_kernels():
     parts = [random_scene(rng, 150, m, T, scale=(0.02, 0.4)) for m in ("pinhole", "fisheye", "equirectangular")]
     scene = [np.concatenate(p) for p in zip(*parts)]
     scene[3][::3] = 6.0  # opacity 0.9975: clamped alpha, and pixels that stop early
-    g = Gaussians.from_numpy(*scene)
-    v = Views.create(cams, np.stack([T, T, T]))
+    g = Gaussians.from_numpy(*scene, device="cpu")
+    v = Views.create(cams, np.stack([T, T, T]), device="cpu")
     out = render(g, v)
     shape = (v.n, v.height, v.width)
     assert out.transmittance.numpy().min() < 1e-3  # some pixels stop before the end of their list
     tiles = [v.tiles_x, v.tiles_x * v.tiles_y]
-    ref = [wp.empty(shape, dtype=t) for t in (wp.vec3, float, float, float, wp.int32)]
-    wp.launch(blend_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.tile_start, out.bins.tile_end, v.cameras, *tiles, 0], outputs=ref)
+    ref = [wp.empty(shape, dtype=t, device="cpu") for t in (wp.vec3, float, float, float, wp.int32)]
+    wp.launch(blend_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.tile_start, out.bins.tile_end, v.cameras, *tiles, 0], outputs=ref, device="cpu")
     for name, r in zip(("color", "depth", "alpha", "transmittance", "n_contrib"), ref):
         np.testing.assert_array_equal(getattr(out, name).numpy(), r.numpy(), err_msg=name)
 
     gC, gD, gA = rng.normal(size=shape + (3,)), rng.normal(size=shape), rng.normal(size=shape)
     grads = render_backward(g, v, out, grad_color=gC, grad_depth=gD, grad_alpha=gA)
     n, total = g.n, out.projection.mean2d.shape[0]
-    per_pixel = [wp.zeros(total, dtype=wp.vec2), wp.zeros(total, dtype=wp.vec3), wp.zeros(total, dtype=float), wp.zeros(total, dtype=float), wp.zeros(n, dtype=wp.vec3)]
-    images = [wp.array(a.astype(np.float32), dtype=t) for a, t in ((gC, wp.vec3), (gD, float), (gA, float))]
+    per_pixel = [wp.zeros(total, dtype=t, device="cpu") for t in (wp.vec2, wp.vec3, float, float)] + [wp.zeros(n, dtype=wp.vec3, device="cpu")]
+    images = [wp.array(a.astype(np.float32), dtype=t, device="cpu") for a, t in ((gC, wp.vec3), (gD, float), (gA, float))]
     forward = [out.color, out.depth, out.alpha, out.transmittance, out.n_contrib]
-    wp.launch(blend_backward_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.values, out.bins.tile_start, v.cameras, n, *tiles, 0, *forward, *images], outputs=per_pixel)
+    wp.launch(blend_backward_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.values, out.bins.tile_start, v.cameras, n, *tiles, 0, *forward, *images], outputs=per_pixel, device="cpu")
     from mcgs_warp.kernels.splat import blend_backward
 
     tiled = blend_backward(out, v, gC, gD, gA)
@@ -202,3 +202,29 @@ def test_cpu_tile_kernels_equal_the_per_pixel_kernels():
         assert np.abs(b).max() > 0, name
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-5 * np.abs(b).max(), err_msg=name)
     np.testing.assert_array_equal(grads.mean2d.numpy(), tiled.mean2d.numpy())
+
+
+def test_cpu_tile_box_keeps_every_pixel_of_long_thin_splats():
+    """Needle-like splats (long, thin, slanted: the terms of d^T conic d cancel, so float32
+    rounds it by more than the ellipse's own margin) still blend the same pixels in the
+    per-tile CPU kernel as in the per-pixel one."""
+    import warp as wp
+    from scipy.spatial.transform import Rotation
+
+    from mcgs_warp.kernels.blend import blend_kernel
+
+    rng = np.random.default_rng(0)
+    cam = make_camera("pinhole", 1000, 1000, (500.0, 500.0, 499.5, 499.5), ())
+    n = 300
+    means = np.stack([rng.uniform(-0.2, 0.2, n), rng.uniform(-0.2, 0.2, n), np.full(n, 1.0)], 1)
+    quats = Rotation.from_rotvec(np.stack([np.zeros(n), np.zeros(n), rng.uniform(0, np.pi, n)], 1)).as_quat()
+    log_scales = np.log(np.stack([rng.uniform(0.25, 0.35, n), np.full(n, 1e-4), np.full(n, 1e-4)], 1))
+    g = Gaussians.from_numpy(means, quats, log_scales, np.full(n, -2.0), rng.uniform(0, 1, (n, 3)), device="cpu")
+    v = Views.create([cam], np.eye(4)[None], device="cpu")
+    out = render(g, v)
+    shape = (1, v.height, v.width)
+    ref = [wp.empty(shape, dtype=t, device="cpu") for t in (wp.vec3, float, float, float, wp.int32)]
+    wp.launch(blend_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.tile_start, out.bins.tile_end, v.cameras, v.tiles_x, v.tiles_x * v.tiles_y, 0], outputs=ref, device="cpu")
+    assert (out.alpha.numpy() > 0).mean() > 0.01
+    for name, r in zip(("color", "depth", "alpha", "transmittance", "n_contrib"), ref):
+        np.testing.assert_array_equal(getattr(out, name).numpy(), r.numpy(), err_msg=name)
