@@ -34,7 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
         "timestamps.txt and groundtruth.txt in our folder format.",
     )
     synth.add_argument("--out", required=True, help="output folder")
-    synth.add_argument("--cameras", type=int, default=3, help="number of rig cameras, 1-4 (default 3: front, left, right)")
+    synth.add_argument("--cameras", type=int, default=None, help="number of the built-in rig's cameras, 1-4 (default 3: front, left, right)")
+    synth.add_argument("--rig", default=None, help="rig YAML to cast instead of the built-in rig (any cameras and models; body x forward, z up)")
     synth.add_argument("--frames", type=int, default=40, help="number of frames (default 40, at 10 Hz)")
     synth.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     synth.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
@@ -91,7 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
 def cmd_synth(args) -> int:
     from .data.synthetic import generate
 
-    seq = generate(args.out, n_cameras=args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth, trajectory=args.trajectory)
+    from .errors import InputError
+    from .rig import load_rig
+
+    if args.rig is not None and args.cameras is not None:
+        raise InputError(None, "--cameras", "takes the built-in rig's first cameras; with --rig, leave it out (the rig file says which cameras)")
+    rig = load_rig(args.rig) if args.rig is not None else None
+    seq = generate(args.out, n_cameras=3 if args.cameras is None else args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth, trajectory=args.trajectory, rig=rig)
     print(f"wrote {len(seq)} frames x {len(seq.rig)} cameras to {args.out} (depth: {args.depth})")
     return 0
 

@@ -183,21 +183,24 @@ def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.where(valid, blurred * field * noise, 0.0).astype(np.float32)
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str = "forward") -> FolderSequence:
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str = "forward", rig: Rig | None = None) -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
     ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
     monocular-style prior, :func:`mono_like_depth`) or ``none`` (no depth folder). The
     exact depth always goes to ``gt/cam<i>/depth`` for evaluation; ``metadata.yaml``
     records the kind. ``trajectory``: ``forward`` (down the room with a weave,
-    :func:`rig_trajectory`) or ``loop`` (one closed loop, :func:`loop_trajectory`)."""
+    :func:`rig_trajectory`) or ``loop`` (one closed loop, :func:`loop_trajectory`). ``rig``:
+    cast this rig instead of the built-in one's first ``n_cameras`` (body x forward, y left,
+    z up; pixels of a camera without a ray, such as a fisheye's corners beyond 90 degrees,
+    come out black with depth 0)."""
     if n_frames < 2:
         raise InputError(None, "--frames", f"expected at least 2, got {n_frames}")
     if depth not in ("exact", "mono", "none"):
         raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
     if trajectory not in ("forward", "loop"):
         raise InputError(None, "--trajectory", f"expected forward or loop, got {trajectory!r}")
-    rig = synthetic_rig(n_cameras)
+    rig = synthetic_rig(n_cameras) if rig is None else rig
     traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
     renderer = SceneRenderer(build_scene(seed, device), rig, device=device)
     writer = FolderWriter(out, rig, depth_kind=depth)
@@ -208,7 +211,7 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         seen = {"exact": exact, "mono": [mono_like_depth(d, rng) for d in exact], "none": None}[depth]
         writer.write_frame(k, [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)], seen, gt_depths=exact)
         if progress and ((k + 1) % 10 == 0 or k + 1 == n_frames):
-            print(f"\rsynth: {k + 1}/{n_frames} frames x {n_cameras} cameras", end="", file=sys.stderr, flush=True)
+            print(f"\rsynth: {k + 1}/{n_frames} frames x {len(rig)} cameras", end="", file=sys.stderr, flush=True)
     if progress:
         print(file=sys.stderr)
     writer.finish(traj.timestamps, traj)

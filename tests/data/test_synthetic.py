@@ -177,3 +177,28 @@ def test_loop_trajectory_closes_and_revisits():
         cos = np.sum(heading * move, 1) / np.linalg.norm(move, axis=1)
         assert cos.min() > 0.9
         assert np.allclose(loop_trajectory(n).poses, T)
+
+
+def test_cli_synth_casts_a_rig_of_your_own(tmp_path):
+    """``synth --rig`` casts the room with the cameras of a rig file (here two 195-degree
+    fisheyes, whose corners have no ray: black, depth 0) and writes that rig beside them;
+    ``--cameras`` with ``--rig`` is a clear error."""
+    from mcgs_warp.kernels.stereo import camera_rays
+    from mcgs_warp.rig import rig_from_dict, save_rig
+
+    fish = dict(model="fisheye", resolution=[96, 80], intrinsics=[36.0, 36.0, 47.5, 39.5], distortion=[0.0034, 0.0007, -0.0017, 0.0003])
+    forward = [-0.5, 0.5, -0.5, 0.5]
+    rig = rig_from_dict({"cameras": [dict(name=n, **fish, T_b_c=dict(translation=[0.2, y, 0.0], quaternion=forward)) for n, y in (("a", 0.1), ("b", -0.1))]})
+    save_rig(rig, tmp_path / "rig.yaml")
+    out = tmp_path / "wide"
+    cmd = [sys.executable, "-m", "mcgs_warp", "synth", "--out", str(out), "--frames", "2", "--rig", str(tmp_path / "rig.yaml")]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    seq = FolderSequence(out)
+    assert [c.name for c in seq.rig.cameras] == ["a", "b"] and seq.rig.cameras[1].intrinsics == tuple(fish["intrinsics"])
+    no_ray = ~np.isfinite(camera_rays(rig.cameras[0].warp_camera(), "cpu").numpy()).all(-1)
+    assert 0.02 < no_ray.mean() < 0.2
+    depth = seq.gt_depths(1)[0]
+    assert (depth[no_ray] == 0).all() and (depth[~no_ray] > 0).mean() > 0.99
+    res = subprocess.run(cmd + ["--cameras", "2"], capture_output=True, text=True)
+    assert res.returncode == 2 and "--cameras" in res.stderr and "Traceback" not in res.stderr
