@@ -1000,6 +1000,9 @@ def refine_points(ref_image: np.ndarray, ref_rays: wp.array, src_image: np.ndarr
 
     pix = np.asarray(pix, np.int64).reshape(-1, 2)
     rho0 = np.asarray(rho0, np.float64).reshape(-1)
+    M = len(pix)
+    if M == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
     T = np.asarray(T_src_ref, np.float64)
     rays = ref_rays.numpy()[pix[:, 1], pix[:, 0]].astype(np.float64)
 
@@ -1011,9 +1014,6 @@ def refine_points(ref_image: np.ndarray, ref_rays: wp.array, src_image: np.ndarr
         rate = np.linalg.norm(landing(rho0 * 1.01) - landing(rho0 * 0.99), axis=1) / (0.02 * rho0)  # px per 1/m
     step = np.where(np.isfinite(rate) & (rate > 0), step_px / np.where(rate > 0, rate, 1.0), 0.0)
     device = ref_rays.device if device is None else wp.get_device(device)
-    M = len(pix)
-    if M == 0:
-        return np.zeros(0, np.float32), np.zeros(0, np.float32)
     offsets = np.arange(-count, count + 1, dtype=np.float64)
     rho = (rho0[:, None] + offsets[None] * step[:, None]).astype(np.float32)
     cost = wp.empty(rho.shape, dtype=float, device=device)

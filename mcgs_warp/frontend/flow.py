@@ -248,6 +248,7 @@ class StereoMatches(FlowProvider):
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
         rig, rays = buffer.rig, buffer.rays.numpy()
+        greys: dict = {}  # (keyframe, camera) -> full-resolution grey image, once per call
         for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
             if i != j or (ci, cj) not in self.stereo.pairs:
                 continue
@@ -261,8 +262,10 @@ class StereoMatches(FlowProvider):
             T = np.linalg.inv(rig.cameras[cj].T_b_c) @ spec.T_b_c
             if self.refine_count > 0:
                 has = (conf > 0) & (z > 0)
-                images = buffer.images[i]
-                rho, _ = refine_points(grey(images[ci], 1), buffer.full_rays[int(ci)], grey(images[cj], 1), rig.cameras[cj].warp_camera(), T, uv[has], 1.0 / z[has], self.refine_px, self.refine_count, self.refine_radius, self.stereo.cfg.min_std, buffer.device)
+                for c in (ci, cj):
+                    if (i, c) not in greys:
+                        greys[(i, c)] = grey(buffer.images[i][c], 1)
+                rho, _ = refine_points(greys[(i, ci)], buffer.full_rays[int(ci)], greys[(i, cj)], rig.cameras[cj].warp_camera(), T, uv[has], 1.0 / z[has], self.refine_px, self.refine_count, self.refine_radius, self.stereo.cfg.min_std, buffer.device)
                 z[has] = np.where(rho > 0, 1.0 / np.maximum(rho, 1e-12), 0.0)
                 conf = np.where(z > 0, conf, 0.0)
             p, inside, _ = project_grid_depth(buffer, ci, z, T, cj, rays)
