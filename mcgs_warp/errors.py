@@ -16,6 +16,6 @@ class InputError(ValueError):
 
     def __init__(self, source, field: str | None, message: str):
         self.source = os.fspath(source) if source is not None else None
-        self.field = field
-        where = ": ".join(p for p in (self.source, field) if p)
+        self.field = None if field is None else str(field)  # a YAML key may be a number
+        where = ": ".join(p for p in (self.source, self.field) if p)
         super().__init__(f"{where}: {message}" if where else message)

@@ -4,6 +4,7 @@ parses, never anything else (no KeyError, TypeError, IndexError, ... escaping)."
 import string
 
 import numpy as np
+import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -83,3 +84,12 @@ def test_huge_quaternions_do_not_overflow(tmp_path):
     (tmp_path / "t.txt").write_text("0 0 0 0 1e308 0 0 1e308\n")
     T = read_tum(tmp_path / "t.txt").poses[0]
     assert np.isfinite(T).all() and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+
+
+def test_a_number_as_a_yaml_key_is_named_in_the_error(tmp_path):
+    """Hypothesis found it: ``1: x`` beside ``cameras`` made the error message itself fail
+    (a non-string field joined into it)."""
+    path = tmp_path / "rig.yaml"
+    path.write_text("cameras: []\n1: x\n")
+    with pytest.raises(InputError, match=r"rig\.yaml: 1: unexpected field"):
+        load_rig(path)
