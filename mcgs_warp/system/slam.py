@@ -116,6 +116,13 @@ class SLAM:
         return self.prior.metric and self.prior.exact
 
     @property
+    def metric_edges(self) -> bool:
+        """Whether correspondences measure metric depth: cross-view edges between overlapping
+        rig cameras (known baselines). Without them only the prior carries the metric scale,
+        and JDSA holds its mean (:func:`~mcgs_warp.ba.jdsa.update_scales`)."""
+        return self.overlap is not None and bool(self.stereo.pairs)
+
+    @property
     def jdsa_active(self) -> bool:
         """JDSA runs for metric but inexact priors (stereo, monocular-style)."""
         return self.cfg.tracking.jdsa and self.prior.metric and not self.exact_depth
@@ -159,7 +166,7 @@ class SLAM:
             edges, targets, weights = self.graph.arrays(keyframes)
             before = self.buf.get_poses()
             if self.jdsa_active:
-                mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1)
+                mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges)
             else:
                 self.mcba.solve(edges, targets, weights, keyframes=keyframes)
             self.mapper.map.follow_keyframes(before, self.buf.get_poses())

@@ -81,3 +81,34 @@ def test_scale_fit_ignores_depths_that_only_echo_the_prior():
     Buf.scales = np.ones((1, 1, 4, 6))
     update_scales(Buf, [0])  # no information: the echoing half pulls the fit towards 1
     assert np.all(Buf.scales[0, 0] < 1.2)
+
+
+def test_scale_fit_can_hold_the_mean_scale():
+    """Without metric correspondences MCBA's depth carries an arbitrary overall scale
+    (here 1.3 times the truth): a free fit passes it into the grids, ``hold_mean`` keeps
+    their mean log scale and only aligns the views relative to each other."""
+    from types import SimpleNamespace
+
+    from mcgs_warp.ba.jdsa import update_scales
+
+    rng = np.random.default_rng(2)
+    h, w = 30, 40
+    true = rng.uniform(2, 8, (2, 1, h, w))
+    rel = np.array([1.25, 0.8])  # the true scale of each view's prior
+    prior = (true / rel[:, None, None, None]).astype(np.float32)
+    mcba_depth = 1.3 * true
+
+    def buffer():
+        return SimpleNamespace(
+            rig=[0],
+            scales=np.ones((2, 1, 4, 6)),
+            depth_prior=prior,
+            prior_conf=np.ones((2, 1, h, w), np.float32),
+            disp=SimpleNamespace(numpy=lambda: (1.0 / mcba_depth).astype(np.float32), shape=(2, 1, h, w)),
+        )
+
+    free, held = buffer(), buffer()
+    update_scales(free, [0, 1])
+    update_scales(held, [0, 1], hold_mean=True)
+    np.testing.assert_allclose(free.scales[:, 0], np.broadcast_to(1.3 * rel[:, None, None], (2, 4, 6)), rtol=1e-3)
+    np.testing.assert_allclose(held.scales[:, 0], np.broadcast_to(rel[:, None, None], (2, 4, 6)), rtol=1e-3)  # mean log of (1.25, 0.8) is 0
