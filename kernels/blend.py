@@ -163,21 +163,23 @@ def blend_tiles_kernel(
     cameras: wp.array(dtype=Camera),
     tiles_x: int,
     tiles_per_camera: int,
-    row0: int,  # first tile row of this launch
+    row0: int,  # first (camera, tile row) of this launch, counted camera-major
     out_color: wp.array(dtype=wp.vec3, ndim=3),
     out_depth: wp.array(dtype=float, ndim=3),
     out_alpha: wp.array(dtype=float, ndim=3),
     out_T: wp.array(dtype=float, ndim=3),
     n_contrib: wp.array(dtype=wp.int32, ndim=3),
 ):
-    """:func:`blend_kernel` with one thread per tile (the CPU's form, ``(C, tile rows,
-    tiles_x)``): the tile's list is walked once and each splat visits only the pixels of
+    """:func:`blend_kernel` with one thread per tile (the CPU's form, launched over
+    ``(C * tiles_y, tiles_x)``, camera-major, so that bands of rows balance across cameras): the tile's list is walked once and each splat visits only the pixels of
     its box (:func:`splat_box`), about a quarter of the tile's; every pixel sees the same
     operations in the same order as in :func:`blend_kernel`, so the images are bitwise
     equal. Per-pixel state lives in the outputs: ``out_depth`` holds the depth sum and
     ``out_alpha`` marks finished pixels (1) until the final pass."""
-    c, tyb, tx = wp.tid()
-    ty = tyb + row0
+    u, tx = wp.tid()
+    tiles_y = tiles_per_camera // tiles_x
+    c = (u + row0) // tiles_y
+    ty = (u + row0) - c * tiles_y
     cam = cameras[c]
     H = out_color.shape[1]
     W = out_color.shape[2]
@@ -334,7 +336,7 @@ def blend_backward_tiles_kernel(
     n_gaussians: int,
     tiles_x: int,
     tiles_per_camera: int,
-    row0: int,  # first tile row of this launch
+    row0: int,  # first (camera, tile row) of this launch, counted camera-major
     out_color: wp.array(dtype=wp.vec3, ndim=3),  # forward outputs
     out_depth: wp.array(dtype=float, ndim=3),
     out_alpha: wp.array(dtype=float, ndim=3),
@@ -358,8 +360,10 @@ def blend_backward_tiles_kernel(
     (:func:`splat_box`) with the per-pixel running sums kept in scratch arrays; each
     splat's gradients are summed over the tile's pixels and added once. The per-pixel
     terms are those of :func:`blend_backward_kernel`; only the summation order differs."""
-    c, tyb, tx = wp.tid()
-    ty = tyb + row0
+    u, tx = wp.tid()
+    tiles_y = tiles_per_camera // tiles_x
+    c = (u + row0) // tiles_y
+    ty = (u + row0) - c * tiles_y
     cam = cameras[c]
     x0 = tx * TILE_SIZE
     y0 = ty * TILE_SIZE

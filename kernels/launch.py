@@ -47,6 +47,10 @@ def run_row_bands(device, height: int, launch_band) -> int:
         for row0, rows in bands[w::workers]:
             launch_band(w, row0, rows)
 
-    for f in [_pool.submit(work, w) for w in range(workers)]:
-        f.result()
+    futures = [_pool.submit(work, w) for w in range(1, workers)]
+    try:
+        work(0)  # the calling thread takes worker 0's bands: one hand-off fewer
+    finally:
+        for f in futures:  # never return while a worker still writes
+            f.result()
     return workers

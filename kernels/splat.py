@@ -258,10 +258,10 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
         wp.launch(blend_kernel, dim=shape, inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, 0], outputs=outputs, device=dev)
         return out
 
-    def band(worker, row0, rows):  # CPU: one thread per tile, bands of tile rows on all cores
-        wp.launch(blend_tiles_kernel, dim=(views.n, rows, views.tiles_x), inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0], outputs=outputs, device=dev)
+    def band(worker, row0, rows):  # CPU: one thread per tile, bands of (camera, tile row) on all cores
+        wp.launch(blend_tiles_kernel, dim=(rows, views.tiles_x), inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0], outputs=outputs, device=dev)
 
-    run_row_bands(dev, views.tiles_y, band)
+    run_row_bands(dev, views.n * views.tiles_y, band)
     return out
 
 
@@ -327,17 +327,17 @@ def blend_backward(rendered: Rendered, views: Views, grad_color=None, grad_depth
     per_worker = [out] + [zeros() for _ in range(1, cpu_workers())]
     scratch = [wp.empty(shape, dtype=t, device=dev) for t in (float, wp.vec3, float, wp.vec4)]
 
-    def band(worker, row0, rows):  # CPU: one thread per tile, bands of tile rows on all cores
+    def band(worker, row0, rows):  # CPU: one thread per tile, bands of (camera, tile row) on all cores
         g = per_worker[worker]
         wp.launch(
             blend_backward_tiles_kernel,
-            dim=(views.n, rows, views.tiles_x),
+            dim=(rows, views.tiles_x),
             inputs=[*inputs, row0, *forward, *scratch],
             outputs=[g.mean2d, g.conic, g.opacity, g.depth, g.colors],
             device=dev,
         )
 
-    used = run_row_bands(dev, views.tiles_y, band)
+    used = run_row_bands(dev, views.n * views.tiles_y, band)
     for g in per_worker[1:used]:
         for name in ("mean2d", "conic", "opacity", "depth", "colors"):
             getattr(out, name).numpy()[...] += getattr(g, name).numpy()  # CPU only: zero-copy views

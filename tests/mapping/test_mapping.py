@@ -88,6 +88,14 @@ def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
         q["quats"] = matrix_to_quat(R @ quat_to_matrix(p["quats"])).astype(np.float32)
         return q
 
+    def same_render(a, b):
+        """Equal to float32 rounding, except on the few pixels (at most 1 in 10,000) where
+        rounding flips a splat across a cutoff (alpha 1/255, 3 sigma): such a flip changes
+        the pixel by at most one splat's alpha there, opacity * exp(-4.5) <= 0.012."""
+        off = np.abs(a - b).reshape(a.shape[0], a.shape[1], a.shape[2], -1).max(-1) > 2e-4
+        assert off.mean() < 1e-4, off.sum()
+        np.testing.assert_allclose(a, b, atol=0.012)
+
     def move(p, scale):
         g = GaussianMap(wp.get_device())
         g.set_numpy(p)
@@ -99,14 +107,14 @@ def test_anchored_gaussians_move_exactly_with_their_keyframe(fitted):
     assert covered.max() > 0.02, covered  # the anchored Gaussians are in view (not a vacuous check)
     # Rigid correction: the moved cameras see exactly what the old ones saw.
     color1, alpha1 = draw(move(only, 1.0), delta @ T_w_c)
-    np.testing.assert_allclose(color1, color0, atol=2e-4)
-    np.testing.assert_allclose(alpha1, alpha0, atol=2e-4)
+    same_render(color1, color0)
+    same_render(alpha1, alpha0)
     # With a scale change (eq. 13): as the same Gaussians moved by hand, and visibly not as the
     # rigid move alone (so the comparison sees the scale).
     color2, alpha2 = draw(move(only, 1.5), delta @ T_w_c)
     hand_color, hand_alpha = draw(moved(only, np.log(1.5)), delta @ T_w_c)
-    np.testing.assert_allclose(color2, hand_color, atol=2e-4)
-    np.testing.assert_allclose(alpha2, hand_alpha, atol=2e-4)
+    same_render(color2, hand_color)
+    same_render(alpha2, hand_alpha)
     assert (alpha2 - alpha1).mean() > 0.01 and (alpha2 > 0.5).mean() > (alpha1 > 0.5).mean()
 
 
