@@ -494,3 +494,104 @@ def pose_candidate_kernel(
 ):
     s = wp.tid()
     cand[s] = se3_retract(poses[s], dxi[s])
+
+
+# ---- JDSA (paper eq. 5): the scaled prior and the scale grids' normal equations ------------
+# A view's m x n scale grid spans its whole padded grid (h x w): node rows sit at
+# y (m - 1) / (h - 1), columns likewise, and B(p, s) interpolates bilinearly (the host
+# reference is mcgs_warp.ba.jdsa.bilinear_basis, which these kernels reproduce).
+
+
+@wp.func
+def grid_cell(p: int, size: int, nodes: int):
+    """Node index below pixel row (or column) ``p`` of ``size`` and the weight of the next
+    node, for ``nodes`` grid nodes spread from the first pixel to the last."""
+    if nodes < 2 or size < 2:
+        return int(0), wp.float64(0.0)
+    t = wp.float64(p) * (wp.float64(nodes - 1) / wp.float64(size - 1))
+    i = wp.min(int(wp.floor(t)), nodes - 2)
+    return i, t - wp.float64(i)
+
+
+@wp.func
+def scale_at(scales: wp.array(dtype=wp.float64, ndim=4), k: int, c: int, y: int, x: int, h: int, w: int):
+    """The bilinear scale ``B(p, s)`` of view (k, c) at grid pixel (x, y)."""
+    m = scales.shape[2]
+    n = scales.shape[3]
+    i, fy = grid_cell(y, h, m)
+    j, fx = grid_cell(x, w, n)
+    i1 = wp.min(i + 1, m - 1)
+    j1 = wp.min(j + 1, n - 1)
+    one = wp.float64(1.0)
+    top = (one - fx) * scales[k, c, i, j] + fx * scales[k, c, i, j1]
+    bottom = (one - fx) * scales[k, c, i1, j] + fx * scales[k, c, i1, j1]
+    return (one - fy) * top + fy * bottom
+
+
+@wp.kernel
+def scaled_prior_kernel(
+    depth_prior: wp.array(dtype=float, ndim=4),  # [K,C,h,w] m, 0 = none
+    prior_conf: wp.array(dtype=float, ndim=4),  # [K,C,h,w] in [0,1]
+    scales: wp.array(dtype=wp.float64, ndim=4),  # [K,C,m,n] JDSA scale grids
+    kf: wp.array(dtype=wp.int32),  # [S] buffer keyframe of each window slot
+    target: wp.array(dtype=float, ndim=4),  # [S,C,h,w] out: inverse depth of the scaled prior, 1/m (0 = none)
+    mask: wp.array(dtype=float, ndim=4),  # [S,C,h,w] out: its confidence (0 = none)
+):
+    """MCBA's prior for a window: ``1 / (d+(p) B(p, s))`` and the prior's confidence."""
+    s, c, y, x = wp.tid()
+    k = kf[s]
+    scaled = wp.float64(depth_prior[k, c, y, x]) * scale_at(scales, k, c, y, x, depth_prior.shape[2], depth_prior.shape[3])
+    if scaled > wp.float64(0.0):
+        target[s, c, y, x] = float(wp.float64(1.0) / scaled)
+        mask[s, c, y, x] = prior_conf[k, c, y, x]
+    else:
+        target[s, c, y, x] = 0.0
+        mask[s, c, y, x] = 0.0
+
+
+@wp.kernel
+def jdsa_normal_kernel(
+    depth_prior: wp.array(dtype=float, ndim=4),  # [K,C,h,w] m, 0 = none
+    prior_conf: wp.array(dtype=float, ndim=4),  # [K,C,h,w]
+    disp: wp.array(dtype=float, ndim=4),  # [K,C,h,w] current inverse depth, 1/m
+    info: wp.array(dtype=float, ndim=4),  # [S,C,h,w] MCBA depth information per window slot
+    kf: wp.array(dtype=wp.int32),  # [V] buffer keyframe of each fitted keyframe
+    info_slot: wp.array(dtype=wp.int32),  # [V] its slot in ``info``; -1: unweighted (no information given)
+    m: int,
+    n: int,
+    AtA: wp.array(dtype=wp.float64, ndim=4),  # [V,C,m*n,m*n] out (accumulated)
+    Atb: wp.array(dtype=wp.float64, ndim=3),  # [V,C,m*n] out (accumulated)
+    weight_sum: wp.array(dtype=wp.float64, ndim=2),  # [V,C] out (accumulated): total pixel weight
+):
+    """Normal equations of ``min_s sum_p wt (d+(p) B(p, s) - D(p))^2`` per view (the scale
+    fit of :func:`mcgs_warp.ba.jdsa.solve_scales`), ``D = 1 / disp``; the pixel weight
+    ``wt`` is the prior's confidence times, with information, ``info disp^4`` (the
+    inverse variance of D from the correspondences). Each pixel touches 4 grid nodes.
+    Atomic sums: launch it once (not in CPU bands; Warp's CPU atomics are plain adds)."""
+    v, c, y, x = wp.tid()
+    k = kf[v]
+    h = depth_prior.shape[2]
+    w = depth_prior.shape[3]
+    prior = wp.float64(depth_prior[k, c, y, x])
+    d = wp.float64(disp[k, c, y, x])
+    if prior <= wp.float64(0.0) or d <= wp.float64(0.0):
+        return
+    wt = wp.float64(prior_conf[k, c, y, x])
+    slot = info_slot[v]
+    if slot >= 0:
+        wt = wt * wp.float64(info[slot, c, y, x]) * d * d * d * d
+    if wt <= wp.float64(0.0):
+        return
+    depth = wp.float64(1.0) / d
+    i, fy = grid_cell(y, h, m)
+    j, fx = grid_cell(x, w, n)
+    i1 = wp.min(i + 1, m - 1)
+    j1 = wp.min(j + 1, n - 1)
+    one = wp.float64(1.0)
+    nodes = wp.vec4i(i * n + j, i * n + j1, i1 * n + j, i1 * n + j1)
+    a = wp.vec4d((one - fy) * (one - fx) * prior, (one - fy) * fx * prior, fy * (one - fx) * prior, fy * fx * prior)
+    for r in range(4):
+        wp.atomic_add(Atb, v, c, nodes[r], wt * a[r] * depth)
+        for q in range(4):
+            wp.atomic_add(AtA, v, c, nodes[r], nodes[q], wt * a[r] * a[q])
+    wp.atomic_add(weight_sum, v, c, wt)

@@ -1,10 +1,12 @@
 """The keyframe buffer: the one place holding what tracking and mapping share.
 
 Per keyframe: timestamp, source frame index, full-resolution images (host, for flow
-and mapping), the rig pose ``T_w_b`` and, per camera, inverse depth on the reduced
-grid (Warp arrays, on the buffer's device); per camera also the depth prior (sensor
-or monocular depth, m, 0 = none) and its JDSA scale grid (host arrays; the scaled
-prior ``depth_prior * bilinear(scales)`` is derived when needed). As in DROID-SLAM's
+and mapping), and on the buffer's Warp device the rig pose ``T_w_b``, the affine
+exposures and, per camera, inverse depth on the reduced grid, the depth prior (sensor
+or monocular depth, m, 0 = none), its confidence and its JDSA scale grid (the scaled
+prior ``depth_prior * bilinear(scales)`` is derived when needed, on the device:
+:func:`mcgs_warp.ba.jdsa.scaled_prior`). Full-resolution mapping depth targets are host
+arrays, uploaded by the mapping loss when they change. As in DROID-SLAM's
 ``DepthVideo`` there are no copies of poses elsewhere: stages read and write these.
 
 Reduced grid: pixel ``(u', v')`` of a camera at ``stride`` s is full-resolution
@@ -62,9 +64,9 @@ class KeyframeBuffer:
         wp.launch(grid_rays_kernel, dim=(C, self.h, self.w), inputs=[self.cameras], outputs=[self.rays], device=self.device)
         self.poses = wp.zeros(capacity, dtype=wp.transform, device=self.device)  # T_w_b
         self.disp = wp.zeros((capacity, C, self.h, self.w), dtype=float, device=self.device)
-        self.depth_prior = np.zeros((capacity, C, self.h, self.w), dtype=np.float32)  # m, 0 = none
-        self.prior_conf = np.ones((capacity, C, self.h, self.w), dtype=np.float32)  # its weight in [0,1]
-        self.scales = np.ones((capacity, C) + tuple(scale_grid))  # JDSA scale grids
+        self.depth_prior = wp.zeros((capacity, C, self.h, self.w), dtype=float, device=self.device)  # m, 0 = none
+        self.prior_conf = wp.full((capacity, C, self.h, self.w), 1.0, dtype=float, device=self.device)  # its weight in [0,1]
+        self.scales = wp.full((capacity, C) + tuple(scale_grid), 1.0, dtype=wp.float64, device=self.device)  # JDSA scale grids
         self.exposure = wp.zeros((capacity, C, 2), dtype=float, device=self.device)  # per image (log a, b): colour a * C + b
         #: keyframe -> full-resolution mapping depth targets per camera ([H,W] m, 0 = none;
         #: ``None`` for a camera without); a keyframe is mapped once it has an entry, and a
@@ -105,8 +107,11 @@ class KeyframeBuffer:
         self.set_poses(np.asarray(T_w_b)[None], start=k)
         self.disp[k].assign(np.asarray(disp, dtype=np.float32))
         if depth_prior is not None:
-            self.depth_prior[k] = depth_prior
-            self.prior_conf[k] = 1.0 if prior_conf is None else prior_conf
+            self.depth_prior[k].assign(np.asarray(depth_prior, dtype=np.float32))
+            if prior_conf is None:
+                self.prior_conf[k].fill_(1.0)
+            else:
+                self.prior_conf[k].assign(np.asarray(prior_conf, dtype=np.float32))
         return k
 
     def get_poses(self) -> np.ndarray:

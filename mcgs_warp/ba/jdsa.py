@@ -62,24 +62,38 @@ def solve_scales(depth_prior: np.ndarray, depth: np.ndarray, grid_shape=(4, 6), 
     return np.linalg.solve(AtA + lam * np.eye(m * n), Atb + lam * s0).reshape(m, n)
 
 
-def depth_information(stats, shape) -> np.ndarray:
-    """Per keyframe view pixel [K,C,h,w]: the Gauss-Newton information of its inverse depth
-    from the correspondences alone (MCBA's depth block of its last linearization; 0 where
-    MCBA did not see the view)."""
-    info = np.zeros(shape, np.float64)
-    if stats.depth_info is not None:
-        info[stats.keyframes] = stats.depth_info
-    return info
+def scaled_prior(buffer, keyframes) -> tuple:
+    """MCBA's inverse-depth prior for ``keyframes`` (window slots in that order), on the
+    buffer's device: ``(target, mask)`` [n,C,h,w] float, ``target = 1 / (d+ B(p, s))`` (1/m,
+    0 = none) and ``mask`` the prior's confidence where it has depth (else 0)."""
+    import warp as wp
+
+    from ..kernels.ba import scaled_prior_kernel
+
+    dev, C = buffer.device, len(buffer.rig)
+    shape = (len(keyframes), C, buffer.h, buffer.w)
+    kf = wp.array(np.asarray(keyframes, dtype=np.int32), dtype=wp.int32, device=dev)
+    target, mask = wp.empty(shape, dtype=float, device=dev), wp.empty(shape, dtype=float, device=dev)
+    if len(keyframes):
+        wp.launch(scaled_prior_kernel, dim=shape, inputs=[buffer.depth_prior, buffer.prior_conf, buffer.scales, kf], outputs=[target, mask], device=dev)
+    return target, mask
 
 
-def update_scales(buffer, keyframes, info=None, hold_mean: bool = False) -> None:
+def update_scales(buffer, keyframes, stats=None, hold_mean: bool = False, reg: float = 1e-6) -> None:
     """JDSA step 2: re-fit every view's scale grid to its current MCBA depth.
 
-    With ``info`` [K,C,h,w] (:func:`depth_information`) each pixel is weighted by the
-    inverse variance of its MCBA depth from the correspondences, ``info * rho^4`` (times
-    the prior's confidence): pixels whose depth only echoes the prior, or that lack
-    parallax (far, near the epipole), carry no scale information. Fitting to them lets
-    the prior drag the metric scale (the drift HI-SLAM2 and the paper warn about).
+    With ``stats`` (the :class:`~mcgs_warp.ba.mcba.MCBAStats` of the last solve) each pixel
+    is weighted by the inverse variance of its MCBA depth from the correspondences,
+    ``info * rho^4`` (``stats.depth_info``, MCBA's depth block of its last linearization;
+    0 for a keyframe the solve did not see), times the prior's confidence: pixels whose
+    depth only echoes the prior, or that lack parallax (far, near the epipole), carry no
+    scale information. Fitting to them lets the prior drag the metric scale (the drift
+    HI-SLAM2 and the paper warn about). Without ``stats`` every pixel with a prior and a
+    depth counts with the prior's confidence. A view with no weight keeps its grid.
+
+    The normal equations are reduced on the device (:func:`~mcgs_warp.kernels.ba.jdsa_normal_kernel`);
+    only the ``(m n) x (m n)`` system of each view and the grids reach the host, where they
+    are solved as :func:`solve_scales` does (Tikhonov ``reg`` towards the current grid).
 
     ``hold_mean``: the fit may not change the mean log scale over these keyframes' grids
     (all grids are divided by the change). Without correspondences that measure metric
@@ -88,20 +102,42 @@ def update_scales(buffer, keyframes, info=None, hold_mean: bool = False) -> None
     lets the metric scale wander (front+back rig, mono prior, seed 1: Sim(3) scale 1.019,
     SE(3) ATE 32 mm against 1.005 and 10 mm without JDSA). Holding the mean keeps the
     prior's scale on average and leaves JDSA the views' relative scales."""
-    disp = buffer.disp.numpy()
-    keyframes = list(keyframes)
-    before = float(np.log(np.maximum(buffer.scales[keyframes], 1e-12)).mean()) if hold_mean and keyframes else 0.0
-    for k in keyframes:
-        for c in range(len(buffer.rig)):
-            d = disp[k, c].astype(np.float64)
-            depth = np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
-            w = buffer.prior_conf[k, c] * (1.0 if info is None else info[k, c] * d**4)
-            if not np.any(w * (depth > 0) * (buffer.depth_prior[k, c] > 0) > 0):
+    import warp as wp
+
+    from ..kernels.ba import jdsa_normal_kernel
+
+    keyframes = [int(k) for k in keyframes]
+    if not keyframes:
+        return
+    dev, C = buffer.device, len(buffer.rig)
+    m, n = buffer.scales.shape[2:]
+    V, mn = len(keyframes), m * n
+    weighted = stats is not None
+    slot_of = {int(k): s for s, k in enumerate(stats.keyframes)} if weighted and stats.depth_info is not None else {}
+    info = stats.depth_info if slot_of else wp.zeros((1, C, 1, 1), dtype=float, device=dev)
+    slots = [slot_of.get(k, -1) for k in keyframes]  # -1: the kernel weighs by confidence alone
+    # with stats, a keyframe the solve did not see has information 0: its grid stays
+    fitted = {k for k in keyframes if k in slot_of} if weighted else set(keyframes)
+    AtA = wp.zeros((V, C, mn, mn), dtype=wp.float64, device=dev)
+    Atb = wp.zeros((V, C, mn), dtype=wp.float64, device=dev)
+    wsum = wp.zeros((V, C), dtype=wp.float64, device=dev)
+    kf = wp.array(np.asarray(keyframes, dtype=np.int32), dtype=wp.int32, device=dev)
+    sl = wp.array(np.asarray(slots, dtype=np.int32), dtype=wp.int32, device=dev)
+    wp.launch(jdsa_normal_kernel, dim=(V, C, buffer.h, buffer.w), inputs=[buffer.depth_prior, buffer.prior_conf, buffer.disp, info, kf, sl, m, n], outputs=[AtA, Atb, wsum], device=dev)
+    AtA, Atb, wsum = AtA.numpy(), Atb.numpy(), wsum.numpy()
+    grids = buffer.scales.numpy()  # [K,C,m,n]: a few numbers per view
+    before = float(np.log(np.maximum(grids[keyframes], 1e-12)).mean())
+    for v, k in enumerate(keyframes):
+        if k not in fitted:
+            continue
+        for c in range(C):
+            if not wsum[v, c] > 0:
                 continue  # nothing measured in this view: keep its grid
-            buffer.scales[k, c] = solve_scales(buffer.depth_prior[k, c].astype(np.float64), depth, buffer.scales.shape[2:], weight=w, start=buffer.scales[k, c])
-    if hold_mean and keyframes:
-        after = float(np.log(np.maximum(buffer.scales[keyframes], 1e-12)).mean())
-        buffer.scales[keyframes] *= np.exp(before - after)
+            lam = reg * (np.trace(AtA[v, c]) / mn + 1e-12)
+            grids[k, c] = np.linalg.solve(AtA[v, c] + lam * np.eye(mn), Atb[v, c] + lam * grids[k, c].ravel()).reshape(m, n)
+    if hold_mean:
+        grids[keyframes] *= np.exp(before - float(np.log(np.maximum(grids[keyframes], 1e-12)).mean()))
+    buffer.scales.assign(grids)
 
 
 def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None, hold_mean: bool = False):
@@ -112,5 +148,5 @@ def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 
         keyframes = np.unique(np.concatenate([edges[:, 0], edges[:, 2]]))
     for _ in range(rounds):
         stats.append(mcba.solve(edges, targets, weights, keyframes=keyframes, fixed=fixed))
-        update_scales(mcba.buf, keyframes, depth_information(stats[-1], mcba.buf.disp.shape), hold_mean=hold_mean)
+        update_scales(mcba.buf, keyframes, stats[-1], hold_mean=hold_mean)
     return stats

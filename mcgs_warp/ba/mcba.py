@@ -58,7 +58,7 @@ class MCBAConfig:
 class MCBAStats:
     cost: list = field(default_factory=list)  # robust cost after each accepted step (first: initial)
     keyframes: list = field(default_factory=list)
-    depth_info: np.ndarray | None = None  # [n,C,h,w] Gauss-Newton information of each inverse depth from the correspondences alone (last linearization)
+    depth_info: wp.array | None = None  # [n,C,h,w] (device) Gauss-Newton information of each inverse depth from the correspondences alone (last linearization)
     accepted: int = 0
     rejected: int = 0
     seconds_kernel: float = 0.0
@@ -77,17 +77,13 @@ class MCBA:
     def _arrays(self, edges, targets, weights):
         return _edge_arrays(edges, targets, weights, self.buf.device)
 
-    def prior_target(self, keyframes) -> tuple[np.ndarray, np.ndarray]:
+    def prior_target(self, keyframes) -> tuple:
         """Inverse-depth prior [k,C,h,w] of ``keyframes`` (JDSA-scaled) and its per-pixel
-        weight (the prior's confidence, 0 where it has no depth)."""
-        from .jdsa import scale_field
+        weight (the prior's confidence, 0 where it has no depth): device arrays
+        (:func:`~mcgs_warp.ba.jdsa.scaled_prior`)."""
+        from .jdsa import scaled_prior
 
-        buf = self.buf
-        prior = buf.depth_prior[keyframes].astype(np.float64)
-        field_ = np.array([[scale_field(buf.scales[k, c], buf.h, buf.w) for c in range(len(buf.rig))] for k in keyframes])
-        scaled = prior * field_
-        mask = scaled > 0
-        return np.where(mask, 1.0 / np.where(mask, scaled, 1.0), 0.0), mask * buf.prior_conf[keyframes]
+        return scaled_prior(self.buf, keyframes)
 
     def cost(self, edge_arrays, n_edges: int, disp=None, poses=None, prior=None) -> float:
         """Robust reprojection cost plus the prior cost at the given (or current) state.
@@ -107,7 +103,7 @@ class MCBA:
             window = wp.empty((len(kfs),) + tuple(disp.shape[1:]), dtype=float, device=dev)
             scratch = wp.empty(len(kfs), dtype=wp.transform, device=dev)
             wp.launch(window_copy_kernel, dim=window.shape, inputs=[kf, 1, disp, poses, window, scratch], device=dev)
-            prior_dev = (window, *(wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=dev) for a in (target, mask)))
+            prior_dev = (window, target, mask)
         return _total_cost(buf, self.cfg, edge_arrays, n_edges, disp, poses, prior_dev)
 
     def reduced_system(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, lam: float | None = None):
@@ -196,7 +192,7 @@ class MCBA:
         if stats.accepted:
             win.store()
         if stats.keyframes:
-            stats.depth_info = win.Cd.numpy().astype(np.float64)
+            stats.depth_info = win.Cd  # the window's own array: no later solve writes it
         return stats
 
 
@@ -243,7 +239,7 @@ class _Window:
         self.prior = None
         self.Ct, self.wt = self.Cd, self.wd  # depth block and gradient with the prior
         if prior is not None:
-            self.prior = tuple(wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=dev) for a in prior)
+            self.prior = tuple(prior)  # device arrays (target, mask), from MCBA.prior_target
             self.Ct, self.wt = wp.empty_like(self.Cd), wp.empty_like(self.wd)
         self.edge_cost = wp.empty(E, dtype=float, device=dev)
         self.total = wp.empty(1, dtype=wp.float64, device=dev)

@@ -73,12 +73,12 @@ def prior_errors(slam) -> tuple[float | None, float | None]:
         if gt is None:
             return None, None
         exact = grid_depth(gt, seq.rig, buf.stride, (buf.h, buf.w))
-        prior = buf.depth_prior[k]
+        prior, grids = buf.depth_prior[k].numpy(), buf.scales[k].numpy()
         for c in range(len(seq.rig)):
             ok = (exact[c] > 0) & (prior[c] > 0)
             if ok.any():
                 raw.append(np.abs(prior[c] - exact[c])[ok])
-                scaled.append(np.abs(prior[c] * scale_field(buf.scales[k, c], buf.h, buf.w) - exact[c])[ok])
+                scaled.append(np.abs(prior[c] * scale_field(grids[c], buf.h, buf.w) - exact[c])[ok])
     if not raw:
         return None, None
     return float(np.concatenate(raw).mean()), float(np.concatenate(scaled).mean())

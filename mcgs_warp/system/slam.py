@@ -246,13 +246,14 @@ class SLAM:
         disp = buf.disp.numpy()[k] if disp is None else disp
         constrained = self._constrained(k, self._measured_weight([k])[k] if weight is None else weight)
         depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
+        grids = buf.scales[k].numpy()  # [C,m,n]
         out = []
         for c, spec in enumerate(self.seq.rig.cameras):
             h, w = spec.height // s, spec.width // s
             full = upsample_inverse_depth_guided(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s, frame.images[c])
             if depths[c] is not None:
                 # the JDSA field lives on the buffer's grid (buf.h x buf.w), this camera's part [:h,:w]
-                field = scale_field(buf.scales[k, c], buf.h, buf.w)[:h, :w].astype(np.float32)
+                field = scale_field(grids[c], buf.h, buf.w)[:h, :w].astype(np.float32)
                 scaled = depths[c] * cv2.resize(field, (spec.width, spec.height), interpolation=cv2.INTER_LINEAR)
                 agree = (scaled > 0) & (full > 0) & (np.abs(scaled - full) < 0.1 * full)
                 full = np.where(agree, scaled, full)
@@ -321,7 +322,7 @@ class SLAM:
     def _constrained(self, k: int, weight: np.ndarray) -> np.ndarray:
         """[C,h,w] bool: grid pixels of keyframe k whose depth something measured (confident
         correspondences from the view, ``weight`` from :meth:`_measured_weight`, or a confident prior)."""
-        total = np.array(self.buf.prior_conf[k] > 0.5) if self.prior.metric else np.zeros(weight.shape, bool)
+        total = (self.buf.prior_conf[k].numpy() > 0.5) if self.prior.metric else np.zeros(weight.shape, bool)
         return total | (weight >= 1.0)
 
     # ----------------------------------------------------------------------------------
@@ -338,9 +339,9 @@ class SLAM:
         arrays.update(
             poses=buf.poses.numpy()[:K].copy(),
             disp=buf.disp.numpy()[:K].copy(),
-            depth_prior=buf.depth_prior[:K].copy(),
-            prior_conf=buf.prior_conf[:K].copy(),
-            scales=buf.scales[:K].copy(),
+            depth_prior=buf.depth_prior[:K].numpy().copy(),
+            prior_conf=buf.prior_conf[:K].numpy().copy(),
+            scales=buf.scales[:K].numpy().copy(),
             exposure=buf.exposure.numpy()[:K].copy(),
             timestamps=np.array(buf.timestamps),
             frame_index=np.array(buf.frame_index, dtype=np.int64),
@@ -376,7 +377,9 @@ class SLAM:
             frame = self.seq[int(fi)]
             buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
-        buf.scales[: len(a["scales"])] = a["scales"]
+        grids = buf.scales.numpy()
+        grids[: len(a["scales"])] = a["scales"]
+        buf.scales.assign(grids)
         saved = a["exposure"] if "exposure" in a else a["mapper.exposure"]  # the mapper's until 2026-11-27
         exposure = buf.exposure.numpy()
         exposure[: len(saved)] = saved[: len(exposure)]

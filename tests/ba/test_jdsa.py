@@ -1,6 +1,8 @@
 """JDSA: the scale grid fit, and its alternation with MCBA."""
 
 import numpy as np
+import pytest
+import warp as wp
 
 from mcgs_warp.ba.jdsa import bilinear_basis, mcba_with_jdsa, scale_field, solve_scales
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
@@ -35,10 +37,12 @@ def test_jdsa_with_mcba_recovers_the_prior_scale_field(synthetic_seq):
     buf = P.buf
     K, C = 3, len(buf.rig)
     s_true = rng.uniform(0.7, 1.4, (K, C, 4, 6))
+    dp = buf.depth_prior.numpy()
     for k in range(K):
         for c in range(C):
-            buf.depth_prior[k, c] = buf.depth_prior[k, c] / scale_field(s_true[k, c], buf.h, buf.w)
-    prior_disp = np.where(buf.depth_prior[:K] > 0, 1.0 / np.maximum(buf.depth_prior[:K], 1e-6), 0)
+            dp[k, c] = dp[k, c] / scale_field(s_true[k, c], buf.h, buf.w)
+    buf.depth_prior.assign(dp)
+    prior_disp = np.where(dp[:K] > 0, 1.0 / np.maximum(dp[:K], 1e-6), 0)
     full = buf.disp.numpy()
     full[:K] = prior_disp  # start from the (wrongly scaled) priors
     buf.disp.assign(full)
@@ -46,8 +50,69 @@ def test_jdsa_with_mcba_recovers_the_prior_scale_field(synthetic_seq):
     mcba_with_jdsa(mcba, P.edges, P.targets, P.weights, rounds=4)
     assert np.median(P.depth_rel_errors()) < 2e-3
     # scales of grid cells that cover observed pixels
-    err = np.abs(buf.scales[:K] / s_true - 1)
+    err = np.abs(buf.scales.numpy()[:K] / s_true - 1)
     assert np.median(err) < 0.02, np.median(err)
+
+
+def fake_buffer(prior, depth, grid=(4, 6), conf=None):
+    """The parts of a KeyframeBuffer that JDSA reads, on the default device: priors and
+    MCBA depths [K,C,h,w] (m), grids of ones."""
+    from types import SimpleNamespace
+
+    K, C, h, w = prior.shape
+    return SimpleNamespace(
+        rig=[0] * C, device=wp.get_device(), h=h, w=w,
+        depth_prior=wp.array(prior.astype(np.float32), dtype=float),
+        prior_conf=wp.array(np.ones(prior.shape, np.float32) if conf is None else conf.astype(np.float32), dtype=float),
+        disp=wp.array((1.0 / depth).astype(np.float32), dtype=float),
+        scales=wp.array(np.ones((K, C) + grid), dtype=wp.float64),
+    )  # fmt: skip
+
+
+def window_stats(keyframes, info):
+    """What update_scales reads of an MCBAStats: the window and its depth information [n,C,h,w]."""
+    from mcgs_warp.ba.mcba import MCBAStats
+
+    return MCBAStats(keyframes=list(keyframes), depth_info=wp.array(info.astype(np.float32), dtype=float))
+
+
+@pytest.mark.parametrize("grid", [(4, 6), (3, 1)])
+def test_device_scaled_prior_and_scale_fit_equal_the_host_reference(grid):
+    """The device kernels against the NumPy definitions: the scaled prior MCBA reads
+    (1 / (prior * bilinear field), the confidence as its weight) and the JDSA fit with
+    information weights (solve_scales with weight conf * info * rho^4), for a window whose
+    slots are not the buffer's order; a keyframe the solve did not see keeps its grid."""
+    from mcgs_warp.ba.jdsa import scaled_prior, update_scales
+
+    rng = np.random.default_rng(3)
+    K, C, h, w = 4, 2, 30, 40
+    true = rng.uniform(1, 9, (K, C, h, w))
+    s_true = rng.uniform(0.7, 1.4, (K, C) + grid)
+    field = np.array([[scale_field(s_true[k, c], h, w) for c in range(C)] for k in range(K)])
+    prior = true / field * (1 + 0.01 * rng.standard_normal(true.shape))
+    prior[rng.uniform(size=prior.shape) < 0.1] = 0  # holes
+    conf = rng.uniform(0.2, 1.0, prior.shape)
+    buf = fake_buffer(prior, true, grid, conf)
+    start = rng.uniform(0.9, 1.1, (K, C) + grid)
+    buf.scales.assign(start)
+
+    window = [2, 0, 3]
+    target, mask = scaled_prior(buf, window)
+    scaled = prior[window] * np.array([[scale_field(start[k, c], h, w) for c in range(C)] for k in window])
+    np.testing.assert_allclose(target.numpy(), np.where(scaled > 0, 1 / np.where(scaled > 0, scaled, 1), 0), rtol=1e-6)
+    np.testing.assert_allclose(mask.numpy(), np.where(scaled > 0, conf[window], 0), rtol=1e-6)
+
+    info = rng.uniform(0, 50, (len(window), C, h, w))
+    update_scales(buf, [0, 1, 2, 3], window_stats(window, info))
+    got = buf.scales.numpy()
+    rho = 1.0 / true.astype(np.float32).astype(np.float64)
+    for s, k in enumerate(window):
+        for c in range(C):
+            weight = conf[k, c].astype(np.float32) * info[s, c].astype(np.float32) * rho[k, c] ** 4
+            want = solve_scales(prior[k, c].astype(np.float32).astype(np.float64), 1.0 / rho[k, c], grid, weight=weight, start=start[k, c])
+            np.testing.assert_allclose(got[k, c], want, rtol=1e-6)
+            np.testing.assert_allclose(got[k, c], s_true[k, c], rtol=0.02)  # and the fit is right
+    np.testing.assert_array_equal(got[1], start[1])  # not in the solve's window
 
 
 def test_scale_fit_ignores_depths_that_only_echo_the_prior():
@@ -55,9 +120,7 @@ def test_scale_fit_ignores_depths_that_only_echo_the_prior():
     correspondences: where MCBA had nothing but the prior (information 0) its depth echoes
     the wrongly scaled prior and must not drag the grid; where it measured, the grid maps
     the prior onto the measured depth. Unweighted, the echo halves the correction."""
-    from types import SimpleNamespace
-
-    from mcgs_warp.ba.jdsa import depth_information, update_scales
+    from mcgs_warp.ba.jdsa import update_scales
 
     rng = np.random.default_rng(1)
     h, w = 30, 40
@@ -68,47 +131,27 @@ def test_scale_fit_ignores_depths_that_only_echo_the_prior():
     mcba_depth = np.where(measured, true, prior)  # elsewhere MCBA depth just echoes the prior
     info = np.where(measured, 50.0, 0.0)
 
-    class Buf:
-        rig = [0]
-        scales = np.ones((1, 1, 4, 6))
-        depth_prior = prior[None, None].astype(np.float32)
-        prior_conf = np.ones((1, 1, h, w), np.float32)
-        disp = SimpleNamespace(numpy=lambda: (1.0 / mcba_depth)[None, None].astype(np.float32), shape=(1, 1, h, w))
-
-    stats = SimpleNamespace(keyframes=[0], depth_info=info[None, None])
-    update_scales(Buf, [0], depth_information(stats, Buf.disp.shape))
-    np.testing.assert_allclose(Buf.scales[0, 0], 1.25, rtol=1e-3)
-    Buf.scales = np.ones((1, 1, 4, 6))
-    update_scales(Buf, [0])  # no information: the echoing half pulls the fit towards 1
-    assert np.all(Buf.scales[0, 0] < 1.2)
+    buf = fake_buffer(prior[None, None], mcba_depth[None, None])
+    update_scales(buf, [0], window_stats([0], info[None, None]))
+    np.testing.assert_allclose(buf.scales.numpy()[0, 0], 1.25, rtol=1e-3)
+    buf = fake_buffer(prior[None, None], mcba_depth[None, None])
+    update_scales(buf, [0])  # no information: the echoing half pulls the fit towards 1
+    assert np.all(buf.scales.numpy()[0, 0] < 1.2)
 
 
 def test_scale_fit_can_hold_the_mean_scale():
     """Without metric correspondences MCBA's depth carries an arbitrary overall scale
     (here 1.3 times the truth): a free fit passes it into the grids, ``hold_mean`` keeps
     their mean log scale and only aligns the views relative to each other."""
-    from types import SimpleNamespace
-
     from mcgs_warp.ba.jdsa import update_scales
 
     rng = np.random.default_rng(2)
     h, w = 30, 40
     true = rng.uniform(2, 8, (2, 1, h, w))
     rel = np.array([1.25, 0.8])  # the true scale of each view's prior
-    prior = (true / rel[:, None, None, None]).astype(np.float32)
-    mcba_depth = 1.3 * true
-
-    def buffer():
-        return SimpleNamespace(
-            rig=[0],
-            scales=np.ones((2, 1, 4, 6)),
-            depth_prior=prior,
-            prior_conf=np.ones((2, 1, h, w), np.float32),
-            disp=SimpleNamespace(numpy=lambda: (1.0 / mcba_depth).astype(np.float32), shape=(2, 1, h, w)),
-        )
-
-    free, held = buffer(), buffer()
+    prior = true / rel[:, None, None, None]
+    free, held = fake_buffer(prior, 1.3 * true), fake_buffer(prior, 1.3 * true)
     update_scales(free, [0, 1])
     update_scales(held, [0, 1], hold_mean=True)
-    np.testing.assert_allclose(free.scales[:, 0], np.broadcast_to(1.3 * rel[:, None, None], (2, 4, 6)), rtol=1e-3)
-    np.testing.assert_allclose(held.scales[:, 0], np.broadcast_to(rel[:, None, None], (2, 4, 6)), rtol=1e-3)  # mean log of (1.25, 0.8) is 0
+    np.testing.assert_allclose(free.scales.numpy()[:, 0], np.broadcast_to(1.3 * rel[:, None, None], (2, 4, 6)), rtol=1e-3)
+    np.testing.assert_allclose(held.scales.numpy()[:, 0], np.broadcast_to(rel[:, None, None], (2, 4, 6)), rtol=1e-3)  # mean log of (1.25, 0.8) is 0
