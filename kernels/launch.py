@@ -9,7 +9,7 @@ CUDA a single launch covers all rows.
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import numpy as np
 
@@ -51,6 +51,7 @@ def run_row_bands(device, height: int, launch_band) -> int:
     try:
         work(0)  # the calling thread takes worker 0's bands: one hand-off fewer
     finally:
-        for f in futures:  # never return while a worker still writes
-            f.result()
+        wait(futures)  # never return (or raise) while a worker still writes
+    for f in futures:
+        f.result()  # a worker's error, if any
     return workers

@@ -92,52 +92,53 @@ def update_scales(buffer, keyframes, stats=None, hold_mean: bool = False, reg: f
     depth counts with the prior's confidence. A view with no weight keeps its grid.
 
     The normal equations are reduced on the device (:func:`~mcgs_warp.kernels.ba.jdsa_normal_kernel`);
-    only the ``(m n) x (m n)`` system of each view and the grids reach the host, where they
-    are solved as :func:`solve_scales` does (Tikhonov ``reg`` towards the current grid).
+    only the ``(m n) x (m n)`` system of each fitted view and its grid cross to the host,
+    where they are solved as :func:`solve_scales` does (Tikhonov ``reg`` towards the
+    current grid).
 
-    ``hold_mean``: the fit may not change the mean log scale over these keyframes' grids
-    (all grids are divided by the change). Without correspondences that measure metric
-    depth (no overlapping rig cameras), MCBA's depth has the prior's scale only: scaling
-    depths, translations and scale grids together changes no residual, so a free fit
-    lets the metric scale wander (front+back rig, mono prior, seed 1: Sim(3) scale 1.019,
-    SE(3) ATE 32 mm against 1.005 and 10 mm without JDSA). Holding the mean keeps the
+    ``hold_mean``: the fit may not change the mean log scale of the grids it moves (they
+    are divided by the change). Without correspondences that measure metric depth (no
+    overlapping rig cameras), MCBA's depth has the prior's scale only: scaling depths,
+    translations and scale grids together changes almost no residual (only the rig's
+    lever arms, under rotation, see it), so a free fit lets the metric scale wander
+    (front+back rig, mono prior, seed 1: Sim(3) scale 1.019, SE(3) ATE 32 mm against 1.005
+    and 10 mm without JDSA). Holding the mean keeps the
     prior's scale on average and leaves JDSA the views' relative scales."""
     import warp as wp
 
     from ..kernels.ba import jdsa_normal_kernel
 
-    keyframes = [int(k) for k in keyframes]
-    if not keyframes:
-        return
     dev, C = buffer.device, len(buffer.rig)
     m, n = buffer.scales.shape[2:]
-    V, mn = len(keyframes), m * n
-    weighted = stats is not None
-    slot_of = {int(k): s for s, k in enumerate(stats.keyframes)} if weighted and stats.depth_info is not None else {}
+    mn = m * n
+    slot_of = {int(k): s for s, k in enumerate(stats.keyframes)} if stats is not None and stats.depth_info is not None else {}
+    # with stats, a keyframe the solve did not see has information 0 there: its grids stay
+    fitted = [int(k) for k in keyframes if stats is None or int(k) in slot_of]
+    if not fitted:
+        return
+    V = len(fitted)
     info = stats.depth_info if slot_of else wp.zeros((1, C, 1, 1), dtype=float, device=dev)
-    slots = [slot_of.get(k, -1) for k in keyframes]  # -1: the kernel weighs by confidence alone
-    # with stats, a keyframe the solve did not see has information 0: its grid stays
-    fitted = {k for k in keyframes if k in slot_of} if weighted else set(keyframes)
+    slots = [slot_of.get(k, -1) for k in fitted]  # -1: the kernel weighs by confidence alone
     AtA = wp.zeros((V, C, mn, mn), dtype=wp.float64, device=dev)
     Atb = wp.zeros((V, C, mn), dtype=wp.float64, device=dev)
     wsum = wp.zeros((V, C), dtype=wp.float64, device=dev)
-    kf = wp.array(np.asarray(keyframes, dtype=np.int32), dtype=wp.int32, device=dev)
+    kf = wp.array(np.asarray(fitted, dtype=np.int32), dtype=wp.int32, device=dev)
     sl = wp.array(np.asarray(slots, dtype=np.int32), dtype=wp.int32, device=dev)
     wp.launch(jdsa_normal_kernel, dim=(V, C, buffer.h, buffer.w), inputs=[buffer.depth_prior, buffer.prior_conf, buffer.disp, info, kf, sl, m, n], outputs=[AtA, Atb, wsum], device=dev)
     AtA, Atb, wsum = AtA.numpy(), Atb.numpy(), wsum.numpy()
-    grids = buffer.scales.numpy()  # [K,C,m,n]: a few numbers per view
-    before = float(np.log(np.maximum(grids[keyframes], 1e-12)).mean())
-    for v, k in enumerate(keyframes):
-        if k not in fitted:
-            continue
-        for c in range(C):
-            if not wsum[v, c] > 0:
-                continue  # nothing measured in this view: keep its grid
-            lam = reg * (np.trace(AtA[v, c]) / mn + 1e-12)
-            grids[k, c] = np.linalg.solve(AtA[v, c] + lam * np.eye(mn), Atb[v, c] + lam * grids[k, c].ravel()).reshape(m, n)
-    if hold_mean:
-        grids[keyframes] *= np.exp(before - float(np.log(np.maximum(grids[keyframes], 1e-12)).mean()))
-    buffer.scales.assign(grids)
+    old = np.stack([buffer.scales[k].numpy() for k in fitted]).astype(np.float64)  # [V,C,m,n]
+    new = old.copy()
+    solved = wsum > 0  # [V,C]; a view with no weight (nothing measured) keeps its grid
+    for v, c in zip(*np.nonzero(solved)):
+        lam = reg * (np.trace(AtA[v, c]) / mn + 1e-12)
+        new[v, c] = np.linalg.solve(AtA[v, c] + lam * np.eye(mn), Atb[v, c] + lam * old[v, c].ravel()).reshape(m, n)
+    if hold_mean and solved.any():
+        # the mean over the grids this fit moved: untouched grids must not dilute the hold
+        shift = np.log(np.maximum(new[solved], 1e-12)).mean() - np.log(np.maximum(old[solved], 1e-12)).mean()
+        new[solved] *= np.exp(-shift)
+    for v, k in enumerate(fitted):
+        if solved[v].any():
+            buffer.scales[k].assign(new[v])
 
 
 def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None, hold_mean: bool = False):

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..ba.graph import TEMPORAL, FactorGraph, GraphConfig, camera_overlap, sliding_window
+from ..ba.graph import TEMPORAL, FactorGraph, GraphConfig, camera_overlap, camera_pairs, sliding_window
 from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
@@ -118,9 +118,10 @@ class SLAM:
     @property
     def metric_edges(self) -> bool:
         """Whether correspondences measure metric depth: cross-view edges between overlapping
-        rig cameras (known baselines). Without them only the prior carries the metric scale,
-        and JDSA holds its mean (:func:`~mcgs_warp.ba.jdsa.update_scales`)."""
-        return self.overlap is not None and bool(self.stereo.pairs)
+        rig cameras (known baselines; the graph links a pair that overlaps either way).
+        Without them only the prior carries the metric scale, and JDSA holds its mean
+        (:func:`~mcgs_warp.ba.jdsa.update_scales`)."""
+        return bool(camera_pairs(self.overlap, len(self.seq.rig), self.graph.cfg.min_camera_overlap))
 
     @property
     def jdsa_active(self) -> bool:

@@ -142,16 +142,21 @@ def test_scale_fit_ignores_depths_that_only_echo_the_prior():
 def test_scale_fit_can_hold_the_mean_scale():
     """Without metric correspondences MCBA's depth carries an arbitrary overall scale
     (here 1.3 times the truth): a free fit passes it into the grids, ``hold_mean`` keeps
-    their mean log scale and only aligns the views relative to each other."""
+    the mean log scale of the grids it fits and only aligns the views relative to each
+    other, fit after fit; a view without a prior keeps its grid and does not dilute the hold."""
     from mcgs_warp.ba.jdsa import update_scales
 
     rng = np.random.default_rng(2)
     h, w = 30, 40
-    true = rng.uniform(2, 8, (2, 1, h, w))
-    rel = np.array([1.25, 0.8])  # the true scale of each view's prior
+    true = rng.uniform(2, 8, (3, 1, h, w))
+    rel = np.array([1.25, 0.8, 1.0])  # the true scale of each view's prior
     prior = true / rel[:, None, None, None]
+    prior[2] = 0.0  # no prior in this view
     free, held = fake_buffer(prior, 1.3 * true), fake_buffer(prior, 1.3 * true)
-    update_scales(free, [0, 1])
-    update_scales(held, [0, 1], hold_mean=True)
-    np.testing.assert_allclose(free.scales.numpy()[:, 0], np.broadcast_to(1.3 * rel[:, None, None], (2, 4, 6)), rtol=1e-3)
-    np.testing.assert_allclose(held.scales.numpy()[:, 0], np.broadcast_to(rel[:, None, None], (2, 4, 6)), rtol=1e-3)  # mean log of (1.25, 0.8) is 0
+    update_scales(free, [0, 1, 2])
+    for _ in range(3):
+        update_scales(held, [0, 1, 2], hold_mean=True)
+    want = np.broadcast_to(rel[:, None, None], (3, 4, 6))
+    np.testing.assert_allclose(free.scales.numpy()[:2, 0], 1.3 * want[:2], rtol=1e-3)
+    np.testing.assert_allclose(held.scales.numpy()[:2, 0], want[:2], rtol=1e-3)  # mean log of (1.25, 0.8) is 0
+    assert np.all(free.scales.numpy()[2] == 1.0) and np.all(held.scales.numpy()[2] == 1.0)
