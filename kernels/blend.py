@@ -154,6 +154,11 @@ def splat_box(r: splat_record, x0: int, y0: int, x1: int, y1: int):
     return bx0, by0, bx1, by1
 
 
+#: One pixel's running state in the tile blender: transmittance (negated once the pixel
+#: is finished), colour sum (3), depth sum, entries walked to the last contributor.
+blend_state = wp.types.vector(length=6, dtype=wp.float32)
+
+
 @wp.kernel
 def blend_tiles_kernel(
     records: wp.array(dtype=splat_record),
@@ -164,6 +169,7 @@ def blend_tiles_kernel(
     tiles_x: int,
     tiles_per_camera: int,
     row0: int,  # first (camera, tile row) of this launch, counted camera-major
+    state: wp.array(dtype=blend_state, ndim=3),  # [C,H,W] scratch
     out_color: wp.array(dtype=wp.vec3, ndim=3),
     out_depth: wp.array(dtype=float, ndim=3),
     out_alpha: wp.array(dtype=float, ndim=3),
@@ -171,11 +177,12 @@ def blend_tiles_kernel(
     n_contrib: wp.array(dtype=wp.int32, ndim=3),
 ):
     """:func:`blend_kernel` with one thread per tile (the CPU's form, launched over
-    ``(C * tiles_y, tiles_x)``, camera-major, so that bands of rows balance across cameras): the tile's list is walked once and each splat visits only the pixels of
-    its box (:func:`splat_box`), about a quarter of the tile's; every pixel sees the same
+    ``(C * tiles_y, tiles_x)``, camera-major, so that bands of rows balance across
+    cameras): the tile's list is walked once and each splat visits only the pixels of its
+    box (:func:`splat_box`), about a quarter of the tile's; every pixel sees the same
     operations in the same order as in :func:`blend_kernel`, so the images are bitwise
-    equal. Per-pixel state lives in the outputs: ``out_depth`` holds the depth sum and
-    ``out_alpha`` marks finished pixels (1) until the final pass."""
+    equal. Each pixel's running sums live in one ``state`` entry (:data:`blend_state`,
+    one load and one store per splat-pixel pair) and reach the outputs at the end."""
     u, tx = wp.tid()
     tiles_y = tiles_per_camera // tiles_x
     c = (u + row0) // tiles_y
@@ -191,11 +198,7 @@ def blend_tiles_kernel(
     ye = wp.min(y0 + TILE_SIZE, H)
     for y in range(y0, ye):
         for x in range(x0, xe):
-            out_color[c, y, x] = wp.vec3(0.0)
-            out_depth[c, y, x] = 0.0
-            out_alpha[c, y, x] = 0.0
-            out_T[c, y, x] = 1.0
-            n_contrib[c, y, x] = 0
+            state[c, y, x] = blend_state(1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     x1 = wp.min(xe, cam.width)
     y1 = wp.min(ye, cam.height)
     if x0 < x1 and y0 < y1:
@@ -207,60 +210,74 @@ def blend_tiles_kernel(
             if alive == 0:
                 break
             r = records[j]
+            cj = record_colors[j]
+            rank = float(j - start + 1)
             bx0, by0, bx1, by1 = splat_box(r, x0, y0, x1, y1)
             for y in range(by0, by1 + 1):
                 for x in range(bx0, bx1 + 1):
-                    if out_alpha[c, y, x] > 0.0:
+                    st = state[c, y, x]
+                    T = st[0]
+                    if T < 0.0:
                         continue  # finished: the transmittance would fall below T_MIN
                     alpha, g = splat_alpha(r, float(x), float(y))
                     if alpha < ALPHA_MIN:
                         continue
-                    T = out_T[c, y, x]
                     next_T = T * (1.0 - alpha)
                     if next_T < T_MIN:
-                        out_alpha[c, y, x] = 1.0
+                        st[0] = -T
+                        state[c, y, x] = st
                         alive -= 1
                         continue
                     w = alpha * T
-                    out_color[c, y, x] = out_color[c, y, x] + w * record_colors[j]
-                    out_depth[c, y, x] = out_depth[c, y, x] + w * r[7]
-                    out_T[c, y, x] = next_T
-                    n_contrib[c, y, x] = j - start + 1
+                    color = wp.vec3(st[1], st[2], st[3]) + w * cj
+                    state[c, y, x] = blend_state(next_T, color[0], color[1], color[2], st[4] + w * r[7], rank)
     for y in range(y0, ye):
         for x in range(x0, xe):
-            T = out_T[c, y, x]
+            st = state[c, y, x]
+            T = wp.abs(st[0])
             a = 1.0 - T
+            out_color[c, y, x] = wp.vec3(st[1], st[2], st[3])
             if a > 0.0:
-                out_depth[c, y, x] = out_depth[c, y, x] / a
+                out_depth[c, y, x] = st[4] / a
             else:
                 out_depth[c, y, x] = 0.0
             out_alpha[c, y, x] = a
+            out_T[c, y, x] = T
+            n_contrib[c, y, x] = int(st[5])
+
+
+#: The tile backward's constants of one pixel: dL/dC (3), dL/d depth sum, the depth sum,
+#: dL/d alpha times the final transmittance, dL/dC . C, and n_contrib (as a float).
+pixel_terms = wp.types.vector(length=8, dtype=wp.float32)
 
 
 @wp.func
-def replay_splat(r: splat_record, ci: wp.vec3, alpha: float, g: float, px: float, py: float, T: float, S: wp.vec3, Sd: float, gC: wp.vec3, C: wp.vec3, Dacc: float, g_dacc: float, g_a: float, Tf: float):
+def replay_splat(r: splat_record, ci: wp.vec3, alpha: float, g: float, px: float, py: float, T: float, SgC: float, Sd: float, gC: wp.vec3, CgC: float, Dacc: float, g_dacc: float, gaTf: float):
     """One splat's step of the backward replay at pixel ``(px, py)``: its blend weight
-    ``w``, the colour and depth sums ``S``, ``Sd`` including it, the transmittance after
-    it, and the gradients w.r.t. its opacity, conic and 2D mean (``shaped`` 0 and no such
-    gradients where alpha is clamped at 0.99)."""
+    ``w``, the colour sum ``S`` (carried as ``SgC = dL/dC . S``: the colour enters the
+    gradient only through that dot product) and depth sum ``Sd`` including it, the
+    transmittance after it, and the gradients w.r.t. its opacity, conic and 2D mean
+    (``shaped`` 0 and no such gradients where alpha is clamped at 0.99). ``CgC = dL/dC . C``
+    and ``gaTf = dL/dalpha_pixel * T_final`` are the pixel's constants."""
     o = r[6]
     di = r[7]
     w = alpha * T
-    S_new = S + w * ci
+    cg = wp.dot(gC, ci)
+    SgC_new = SgC + w * cg
     Sd_new = Sd + w * di
     inv1ma = 1.0 / (1.0 - alpha)
-    g_alpha = wp.dot(gC, T * ci - (C - S_new) * inv1ma)
+    g_alpha = T * cg - (CgC - SgC_new) * inv1ma
     g_alpha += g_dacc * (T * di - (Dacc - Sd_new) * inv1ma)
-    g_alpha += g_a * Tf * inv1ma
+    g_alpha += gaTf * inv1ma
     T_next = T * (1.0 - alpha)
     if o * g > ALPHA_MAX:
-        return w, S_new, Sd_new, T_next, 0.0, wp.vec3(0.0), wp.vec2(0.0), 0
+        return w, SgC_new, Sd_new, T_next, 0.0, wp.vec3(0.0), wp.vec2(0.0), 0
     g_m = -0.5 * g_alpha * o * g  # dL/dm, m = d^T conic d
     dx = px - r[0]
     dy = py - r[1]
     g_conic = g_m * wp.vec3(dx * dx, 2.0 * dx * dy, dy * dy)
     g_mean = -2.0 * g_m * wp.vec2(r[2] * dx + r[3] * dy, r[3] * dx + r[4] * dy)
-    return w, S_new, Sd_new, T_next, g_alpha * g, g_conic, g_mean, 1
+    return w, SgC_new, Sd_new, T_next, g_alpha * g, g_conic, g_mean, 1
 
 
 @wp.kernel
@@ -308,8 +325,10 @@ def blend_backward_kernel(
     g_a = grad_alpha[c, y, x] - grad_depth[c, y, x] * Dn / A
     px = float(x)
     py = float(y)
+    CgC = wp.dot(C, gC)
+    gaTf = g_a * Tf
     T = float(1.0)
-    S = wp.vec3(0.0)
+    SgC = float(0.0)
     Sd = float(0.0)
     for j in range(start, start + n):
         r = records[j]
@@ -317,7 +336,7 @@ def blend_backward_kernel(
         if alpha < ALPHA_MIN:
             continue
         flat = values[j]
-        w, S, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(r, record_colors[j], alpha, g, px, py, T, S, Sd, gC, C, Dacc, g_dacc, g_a, Tf)
+        w, SgC, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(r, record_colors[j], alpha, g, px, py, T, SgC, Sd, gC, CgC, Dacc, g_dacc, gaTf)
         wp.atomic_add(grad_colors, flat % n_gaussians, w * gC)
         wp.atomic_add(grad_splat_depth, flat, w * g_dacc)
         if shaped == 1:
@@ -345,10 +364,8 @@ def blend_backward_tiles_kernel(
     grad_color: wp.array(dtype=wp.vec3, ndim=3),
     grad_depth: wp.array(dtype=float, ndim=3),
     grad_alpha: wp.array(dtype=float, ndim=3),
-    run_T: wp.array(dtype=float, ndim=3),  # [C,H,W] scratch: transmittance before the splat
-    run_S: wp.array(dtype=wp.vec3, ndim=3),  # [C,H,W] scratch: colour accumulated so far
-    run_Sd: wp.array(dtype=float, ndim=3),  # [C,H,W] scratch: depth accumulated so far
-    pixel: wp.array(dtype=wp.vec4, ndim=3),  # [C,H,W] scratch: the pixel's g_dacc, g_a, depth sum, final T
+    run: wp.array(dtype=wp.vec3, ndim=3),  # [C,H,W] scratch: transmittance before the splat, dL/dC . colour sum, depth sum
+    pixel: wp.array(dtype=pixel_terms, ndim=3),  # [C,H,W] scratch: the pixel's constants
     grad_mean2d: wp.array(dtype=wp.vec2),  # [C*N] out (accumulated)
     grad_conic: wp.array(dtype=wp.vec3),
     grad_opacity: wp.array(dtype=float),
@@ -374,15 +391,17 @@ def blend_backward_tiles_kernel(
     n_max = int(0)
     for y in range(y0, y1):
         for x in range(x0, x1):
-            run_T[c, y, x] = 1.0
-            run_S[c, y, x] = wp.vec3(0.0)
-            run_Sd[c, y, x] = 0.0
+            run[c, y, x] = wp.vec3(1.0, 0.0, 0.0)
             n = n_contrib[c, y, x]
             if n > 0:  # then alpha > 0
                 A = out_alpha[c, y, x]
                 Dn = out_depth[c, y, x]
                 gd = grad_depth[c, y, x]
-                pixel[c, y, x] = wp.vec4(gd / A, grad_alpha[c, y, x] - gd * Dn / A, Dn * A, out_T[c, y, x])
+                gC = grad_color[c, y, x]
+                g_a = grad_alpha[c, y, x] - gd * Dn / A
+                pixel[c, y, x] = pixel_terms(gC[0], gC[1], gC[2], gd / A, Dn * A, g_a * out_T[c, y, x], wp.dot(out_color[c, y, x], gC), float(n))
+            else:
+                pixel[c, y, x] = pixel_terms(0.0)
             n_max = wp.max(n_max, n)
     start = tile_start[c * tiles_per_camera + ty * tiles_x + tx]
     for j in range(start, start + n_max):
@@ -395,27 +414,24 @@ def blend_backward_tiles_kernel(
         acc_opacity = float(0.0)
         acc_conic = wp.vec3(0.0)
         acc_mean = wp.vec2(0.0)
+        rank = float(j - start)
         for y in range(by0, by1 + 1):
             for x in range(bx0, bx1 + 1):
-                if j - start >= n_contrib[c, y, x]:
-                    continue
+                q = pixel[c, y, x]
+                if rank >= q[7]:
+                    continue  # beyond the pixel's last contributor
                 px = float(x)
                 py = float(y)
                 alpha, g = splat_alpha(r, px, py)
                 if alpha < ALPHA_MIN:
                     continue
                 hit = 1
-                gC = grad_color[c, y, x]
-                q = pixel[c, y, x]
-                g_dacc = q[0]
-                w, S, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(
-                    r, ci, alpha, g, px, py, run_T[c, y, x], run_S[c, y, x], run_Sd[c, y, x], gC, out_color[c, y, x], q[2], g_dacc, q[1], q[3]
-                )
-                run_T[c, y, x] = T
-                run_S[c, y, x] = S
-                run_Sd[c, y, x] = Sd
+                gC = wp.vec3(q[0], q[1], q[2])
+                s = run[c, y, x]
+                w, SgC, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(r, ci, alpha, g, px, py, s[0], s[1], s[2], gC, q[6], q[4], q[3], q[5])
+                run[c, y, x] = wp.vec3(T, SgC, Sd)
                 acc_color += w * gC
-                acc_depth += w * g_dacc
+                acc_depth += w * q[3]
                 acc_opacity += g_opacity
                 acc_conic += g_conic
                 acc_mean += g_mean

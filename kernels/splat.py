@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .blend import blend_backward_kernel, blend_backward_tiles_kernel, blend_kernel, blend_tiles_kernel, gather_splats_kernel, splat_record
+from .blend import blend_backward_kernel, blend_backward_tiles_kernel, blend_kernel, blend_tiles_kernel, blend_state, gather_splats_kernel, pixel_terms, splat_record
 from .camera import FAR, NEAR, Camera
 from .launch import cpu_workers, run_row_bands
 from .projection import project_gaussians_backward_kernel, project_gaussians_kernel
@@ -258,8 +258,10 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
         wp.launch(blend_kernel, dim=shape, inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, 0], outputs=outputs, device=dev)
         return out
 
+    state = wp.empty(shape, dtype=blend_state, device=dev)  # scratch
+
     def band(worker, row0, rows):  # CPU: one thread per tile, bands of (camera, tile row) on all cores
-        wp.launch(blend_tiles_kernel, dim=(rows, views.tiles_x), inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0], outputs=outputs, device=dev)
+        wp.launch(blend_tiles_kernel, dim=(rows, views.tiles_x), inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, row0, state], outputs=outputs, device=dev)
 
     run_row_bands(dev, views.n * views.tiles_y, band)
     return out
@@ -325,7 +327,7 @@ def blend_backward(rendered: Rendered, views: Views, grad_color=None, grad_depth
     # Warp's CPU atomics are plain adds, so each CPU worker accumulates into buffers of
     # its own, summed afterwards in worker order (deterministic for a worker count).
     per_worker = [out] + [zeros() for _ in range(1, cpu_workers())]
-    scratch = [wp.empty(shape, dtype=t, device=dev) for t in (float, wp.vec3, float, wp.vec4)]
+    scratch = [wp.empty(shape, dtype=wp.vec3, device=dev), wp.empty(shape, dtype=pixel_terms, device=dev)]
 
     def band(worker, row0, rows):  # CPU: one thread per tile, bands of (camera, tile row) on all cores
         g = per_worker[worker]
