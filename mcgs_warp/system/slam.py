@@ -373,6 +373,9 @@ class SLAM:
             raise InputError(path, None, f"unreadable checkpoint ({e})") from None
         if meta["config"] != self.cfg.to_dict() or meta["n_frames"] != len(self.seq):
             raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
+        missing = [k for k in ("frame_index", "timestamps", "poses", "disp", "depth_prior", "prior_conf", "scales", "exposure", "graph_edges") if k not in a]
+        if missing:
+            raise InputError(path, None, f"checkpoint was written by an older version (no {', '.join(missing)}); start without --resume")
         buf = self.buf
         for k, fi in enumerate(a["frame_index"]):
             frame = self.seq[int(fi)]
@@ -381,12 +384,9 @@ class SLAM:
         grids = buf.scales.numpy()
         grids[: len(a["scales"])] = a["scales"]
         buf.scales.assign(grids)
-        saved = a["exposure"] if "exposure" in a else a["mapper.exposure"]  # the mapper's until 2026-11-27
         exposure = buf.exposure.numpy()
-        exposure[: len(saved)] = saved[: len(exposure)]
+        exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
         buf.exposure.assign(exposure)
-        if "graph_edges" not in a:
-            raise InputError(path, None, "checkpoint was written by an older version (no factor graph); start without --resume")
         try:
             self.graph.load_state_arrays(a, correspondence_store(path))
         except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:

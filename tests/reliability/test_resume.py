@@ -64,3 +64,10 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
     with pytest.raises(InputError, match="checkpoint.corr"):
         run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+    # a checkpoint of an older version (here without the buffer's exposures) is refused by name
+    ckpt = tmp_path / "cut" / "checkpoint.npz"
+    with np.load(ckpt) as z:
+        arrays = {k: z[k] for k in z.files if k != "exposure"}
+    np.savez(ckpt, **arrays)
+    with pytest.raises(InputError, match="older version \\(no exposure\\)"):
+        run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
