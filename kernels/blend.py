@@ -376,7 +376,8 @@ def blend_backward_tiles_kernel(
     walks the tile's list once, each splat visiting only the pixels of its box
     (:func:`splat_box`) with the per-pixel running sums kept in scratch arrays; each
     splat's gradients are summed over the tile's pixels and added once. The per-pixel
-    terms are those of :func:`blend_backward_kernel`; only the summation order differs."""
+    terms are those of :func:`blend_backward_kernel`; only the summation order (and so float32
+    rounding) differs."""
     u, tx = wp.tid()
     tiles_y = tiles_per_camera // tiles_x
     c = (u + row0) // tiles_y

@@ -41,6 +41,10 @@ from .config import RunConfig
 
 GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
 log = logging.getLogger("mcgs_warp.slam")
+#: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
+#: (2: the keyframe buffer's exposures, device priors and JDSA grids, 2026-11-27), so that
+#: --resume refuses an older checkpoint by name instead of failing on a missing array.
+CHECKPOINT_FORMAT = 2
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
@@ -351,7 +355,7 @@ class SLAM:
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             **{f"targets_cam{c}": np.array([self.buf.targets[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
-            meta=np.array(json.dumps({"next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -371,6 +375,8 @@ class SLAM:
             meta = json.loads(str(a["meta"]))
         except (OSError, ValueError, KeyError) as e:
             raise InputError(path, None, f"unreadable checkpoint ({e})") from None
+        if meta.get("format") != CHECKPOINT_FORMAT:
+            raise InputError(path, None, f"checkpoint was written by an older version (format {meta.get('format', 1)}, this version reads {CHECKPOINT_FORMAT}); start without --resume")
         if meta["config"] != self.cfg.to_dict() or meta["n_frames"] != len(self.seq):
             raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
         missing = [k for k in ("frame_index", "timestamps", "poses", "disp", "depth_prior", "prior_conf", "scales", "exposure", "graph_edges") if k not in a]

@@ -1,6 +1,7 @@
 """Checkpoint and resume: an interrupted run, resumed, ends exactly where an
 uninterrupted one does."""
 
+import json
 import shutil
 
 import numpy as np
@@ -64,10 +65,15 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
     with pytest.raises(InputError, match="checkpoint.corr"):
         run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
-    # a checkpoint of an older version (here without the buffer's exposures) is refused by name
+    # a checkpoint of an older version is refused by name: one without a format number
+    # (before 2026-11-27), and one of the current format that lacks an array
     ckpt = tmp_path / "cut" / "checkpoint.npz"
     with np.load(ckpt) as z:
-        arrays = {k: z[k] for k in z.files if k != "exposure"}
-    np.savez(ckpt, **arrays)
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    np.savez(ckpt, **dict(arrays, meta=np.array(json.dumps({k: v for k, v in meta.items() if k != "format"}))))
+    with pytest.raises(InputError, match="older version \\(format 1"):
+        run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+    np.savez(ckpt, **{k: v for k, v in arrays.items() if k != "exposure"})
     with pytest.raises(InputError, match="older version \\(no exposure\\)"):
         run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
