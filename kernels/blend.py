@@ -252,6 +252,34 @@ pixel_terms = wp.types.vector(length=8, dtype=wp.float32)
 
 
 @wp.func
+def backward_pixel_terms(
+    out_color: wp.array(dtype=wp.vec3, ndim=3),
+    out_depth: wp.array(dtype=float, ndim=3),
+    out_alpha: wp.array(dtype=float, ndim=3),
+    out_T: wp.array(dtype=float, ndim=3),
+    n_contrib: wp.array(dtype=wp.int32, ndim=3),
+    grad_color: wp.array(dtype=wp.vec3, ndim=3),
+    grad_depth: wp.array(dtype=float, ndim=3),
+    grad_alpha: wp.array(dtype=float, ndim=3),
+    c: int,
+    y: int,
+    x: int,
+):
+    """The backward replay's constants of pixel (c, y, x) (:data:`pixel_terms`; all 0 where
+    no splat contributed): the normalized depth's and alpha's gradients become gradients
+    of the depth sum and, times the final transmittance, of each splat's alpha."""
+    n = n_contrib[c, y, x]
+    if n == 0:  # then alpha is 0 and nothing is replayed
+        return pixel_terms(0.0)
+    A = out_alpha[c, y, x]
+    Dn = out_depth[c, y, x]
+    gd = grad_depth[c, y, x]
+    gC = grad_color[c, y, x]
+    g_a = grad_alpha[c, y, x] - gd * Dn / A
+    return pixel_terms(gC[0], gC[1], gC[2], gd / A, Dn * A, g_a * out_T[c, y, x], wp.dot(out_color[c, y, x], gC), float(n))
+
+
+@wp.func
 def replay_splat(r: splat_record, ci: wp.vec3, alpha: float, g: float, px: float, py: float, T: float, SgC: float, Sd: float, gC: wp.vec3, CgC: float, Dacc: float, g_dacc: float, gaTf: float):
     """One splat's step of the backward replay at pixel ``(px, py)``: its blend weight
     ``w``, the colour sum ``S`` (carried as ``SgC = dL/dC . S``: the colour enters the
@@ -315,18 +343,11 @@ def blend_backward_kernel(
         return
     tile = c * tiles_per_camera + (y // TILE_SIZE) * tiles_x + x // TILE_SIZE
     start = tile_start[tile]
-    gC = grad_color[c, y, x]
-    C = out_color[c, y, x]
-    A = out_alpha[c, y, x]
-    Tf = out_T[c, y, x]
-    Dn = out_depth[c, y, x]
-    Dacc = Dn * A
-    g_dacc = grad_depth[c, y, x] / A
-    g_a = grad_alpha[c, y, x] - grad_depth[c, y, x] * Dn / A
+    q = backward_pixel_terms(out_color, out_depth, out_alpha, out_T, n_contrib, grad_color, grad_depth, grad_alpha, c, y, x)
+    gC = wp.vec3(q[0], q[1], q[2])
+    g_dacc = q[3]
     px = float(x)
     py = float(y)
-    CgC = wp.dot(C, gC)
-    gaTf = g_a * Tf
     T = float(1.0)
     SgC = float(0.0)
     Sd = float(0.0)
@@ -336,7 +357,7 @@ def blend_backward_kernel(
         if alpha < ALPHA_MIN:
             continue
         flat = values[j]
-        w, SgC, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(r, record_colors[j], alpha, g, px, py, T, SgC, Sd, gC, CgC, Dacc, g_dacc, gaTf)
+        w, SgC, Sd, T, g_opacity, g_conic, g_mean, shaped = replay_splat(r, record_colors[j], alpha, g, px, py, T, SgC, Sd, gC, q[6], q[4], g_dacc, q[5])
         wp.atomic_add(grad_colors, flat % n_gaussians, w * gC)
         wp.atomic_add(grad_splat_depth, flat, w * g_dacc)
         if shaped == 1:
@@ -393,17 +414,9 @@ def blend_backward_tiles_kernel(
     for y in range(y0, y1):
         for x in range(x0, x1):
             run[c, y, x] = wp.vec3(1.0, 0.0, 0.0)
-            n = n_contrib[c, y, x]
-            if n > 0:  # then alpha > 0
-                A = out_alpha[c, y, x]
-                Dn = out_depth[c, y, x]
-                gd = grad_depth[c, y, x]
-                gC = grad_color[c, y, x]
-                g_a = grad_alpha[c, y, x] - gd * Dn / A
-                pixel[c, y, x] = pixel_terms(gC[0], gC[1], gC[2], gd / A, Dn * A, g_a * out_T[c, y, x], wp.dot(out_color[c, y, x], gC), float(n))
-            else:
-                pixel[c, y, x] = pixel_terms(0.0)
-            n_max = wp.max(n_max, n)
+            q = backward_pixel_terms(out_color, out_depth, out_alpha, out_T, n_contrib, grad_color, grad_depth, grad_alpha, c, y, x)
+            pixel[c, y, x] = q
+            n_max = wp.max(n_max, int(q[7]))
     start = tile_start[c * tiles_per_camera + ty * tiles_x + tx]
     for j in range(start, start + n_max):
         r = records[j]

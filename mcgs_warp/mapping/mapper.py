@@ -239,8 +239,6 @@ class Mapper:
         meta = json.loads(str(a["json"]))
         self.iteration = meta["iteration"]
         self.rng.bit_generator.state = meta["rng"]
-        for name, (m, v, t) in meta.get("host_adam", {}).items():  # checkpoints from before the one Adam
-            self.adam.state[name] = tuple(wp.array(np.ravel(x), dtype=float, device=self.buf.device) for x in (m, v)) + (t,)
         self.rejected_steps = meta["rejected"]
         self.buf.targets.clear()
         self.buf.targets.update({k: depths[k] for k in meta["registered"]})

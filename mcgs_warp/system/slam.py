@@ -379,32 +379,33 @@ class SLAM:
             raise InputError(path, None, f"checkpoint was written by an older version (format {meta.get('format', 1)}, this version reads {CHECKPOINT_FORMAT}); start without --resume")
         if meta["config"] != self.cfg.to_dict() or meta["n_frames"] != len(self.seq):
             raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
-        missing = [k for k in ("frame_index", "timestamps", "poses", "disp", "depth_prior", "prior_conf", "scales", "exposure", "graph_edges") if k not in a]
-        if missing:
-            raise InputError(path, None, f"checkpoint was written by an older version (no {', '.join(missing)}); start without --resume")
-        buf = self.buf
-        for k, fi in enumerate(a["frame_index"]):
-            frame = self.seq[int(fi)]
-            buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
-        wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
-        grids = buf.scales.numpy()
-        grids[: len(a["scales"])] = a["scales"]
-        buf.scales.assign(grids)
-        exposure = buf.exposure.numpy()
-        exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
-        buf.exposure.assign(exposure)
-        try:
-            self.graph.load_state_arrays(a, correspondence_store(path))
-        except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
-            raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
-        self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
-        if not self.exact_depth:  # estimated targets: restore them as they were
-            depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
-        else:
-            depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
-        self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
-        self.seconds = meta["seconds"]
-        return int(meta["next_frame"]), [int(v) for v in a["kf_frames"]]
+        try:  # the format is the current one: a missing array means a damaged file
+            buf = self.buf
+            for k, fi in enumerate(a["frame_index"]):
+                frame = self.seq[int(fi)]
+                buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
+            wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
+            grids = buf.scales.numpy()
+            grids[: len(a["scales"])] = a["scales"]
+            buf.scales.assign(grids)
+            exposure = buf.exposure.numpy()
+            exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
+            buf.exposure.assign(exposure)
+            try:
+                self.graph.load_state_arrays(a, correspondence_store(path))
+            except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
+                raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
+            self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
+            if not self.exact_depth:  # estimated targets: restore them as they were
+                depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
+            else:
+                depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
+            self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
+            self.seconds = meta["seconds"]
+            kf_frames = [int(v) for v in a["kf_frames"]]
+        except KeyError as e:
+            raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None
+        return int(meta["next_frame"]), kf_frames
 
     def run(self, checkpoint=None, resume: bool = False, stop_after_keyframes: int | None = None) -> RunResult:
         """Process every frame, then refine. With ``checkpoint`` (a .npz path) the state is
