@@ -90,7 +90,7 @@ def room_problem(n_keyframes: int, radius: int, rng):
 
     rig = synthetic_rig(3)
     buf = KeyframeBuffer(rig, stride=8, capacity=n_keyframes)
-    T_w_b = loop_trajectory(n_keyframes).poses
+    T_w_b = loop_trajectory(n_keyframes, max_step=np.inf).poses  # the full room loop
     lo = T_w_b[:, :3, 3].min(0) - [3.0, 3.0, 1.4]  # walls 3 m beside the path, floor 1.4 m below
     hi = T_w_b[:, :3, 3].max(0) + [3.0, 3.0, 1.6]
     rays = buf.rays.numpy().astype(np.float64)  # [C,h,w,3] unit-depth rays

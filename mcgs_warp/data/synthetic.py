@@ -48,18 +48,27 @@ def rig_trajectory(n_frames: int) -> Trajectory:
     return Trajectory(t, T)
 
 
-LOOP_STRAIGHT = 14.0  # m: the loop's straight legs, along x from x = 0
+LOOP_STRAIGHT = 14.0  # m: the full loop's straight legs, along x from x = 0
 LOOP_RADIUS = 1.2  # m: its half-turns (the lane |y| < 1.6 m is free of obstacles)
+LOOP_FULL = 2 * LOOP_STRAIGHT + 2 * np.pi * LOOP_RADIUS  # m: the full loop's length (35.5 m)
+LOOP_STEP = LOOP_FULL / 640  # m per frame at most (0.55 m/s at 10 Hz): 640 frames drive the full loop
 
 
-def loop_trajectory(n_frames: int) -> Trajectory:
+def loop_trajectory(n_frames: int, max_step: float = LOOP_STEP) -> Trajectory:
     """Rig body poses ``T_w_b`` of one closed loop through the room: out along y = +r,
     a half-turn, back along y = -r, a half-turn, ending where it started (so the last
-    frames revisit the first views). The speed is set so that ``n_frames`` at 10 Hz
-    complete the loop (160 frames: 2.0 m/s; 640: 0.5 m/s). Heading follows the path."""
+    frames revisit the first views). Heading follows the path.
+
+    The rig moves at most ``max_step`` m per frame (default 0.55 m/s), so the motion between
+    frames is the same at every length and lengths compare like with like: ``n_frames >= 640``
+    drive the full loop (14 m legs, 1.2 m half-turns; more frames, slower), fewer drive a
+    shorter one (160 frames: 0.67 m legs; under 137 frames a circle, 40 frames: 0.35 m
+    radius, 9 degrees of heading per frame). ``max_step=np.inf``: the full loop at any
+    length (keyframe-like spacing for tests and benchmarks)."""
     t = np.arange(n_frames) / FRAME_RATE
-    L, r = LOOP_STRAIGHT, LOOP_RADIUS
-    perimeter = 2 * L + 2 * np.pi * r
+    perimeter = min(LOOP_FULL, n_frames * max_step)
+    r = min(LOOP_RADIUS, perimeter / (2 * np.pi))
+    L = max(0.0, (perimeter - 2 * np.pi * r) / 2)
     s = perimeter * np.arange(n_frames) / n_frames  # arc length; frame n would close the loop
     T = np.zeros((n_frames, 4, 4))
     T[:, 3, 3] = 1.0
@@ -183,14 +192,15 @@ def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.where(valid, blurred * field * noise, 0.0).astype(np.float32)
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str = "forward", rig: Rig | None = None) -> FolderSequence:
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None) -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
     ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
     monocular-style prior, :func:`mono_like_depth`) or ``none`` (no depth folder). The
     exact depth always goes to ``gt/cam<i>/depth`` for evaluation; ``metadata.yaml``
     records the kind. ``trajectory``: ``forward`` (down the room with a weave,
-    :func:`rig_trajectory`) or ``loop`` (one closed loop, :func:`loop_trajectory`). ``rig``:
+    :func:`rig_trajectory`), ``loop`` (one closed loop, :func:`loop_trajectory`) or a
+    :class:`Trajectory` of body poses (its length sets the frame count). ``rig``:
     cast this rig instead of the built-in one's first ``n_cameras`` (body x forward, y left,
     z up; pixels of a camera without a ray, such as a fisheye's corners beyond 90 degrees,
     come out black with depth 0)."""
@@ -198,10 +208,13 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         raise InputError(None, "--frames", f"expected at least 2, got {n_frames}")
     if depth not in ("exact", "mono", "none"):
         raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
-    if trajectory not in ("forward", "loop"):
+    if isinstance(trajectory, Trajectory):
+        traj, n_frames = trajectory, len(trajectory.timestamps)
+    elif trajectory in ("forward", "loop"):
+        traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
+    else:
         raise InputError(None, "--trajectory", f"expected forward or loop, got {trajectory!r}")
     rig = synthetic_rig(n_cameras) if rig is None else rig
-    traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
     renderer = SceneRenderer(build_scene(seed, device), rig, device=device)
     writer = FolderWriter(out, rig, depth_kind=depth)
     rng = np.random.default_rng(1000 + seed)

@@ -13,7 +13,7 @@ import pytest
 from mcgs_warp.ba import graph as G
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
 from mcgs_warp.buffer import KeyframeBuffer
-from mcgs_warp.data.synthetic import generate
+from mcgs_warp.data.synthetic import generate, loop_trajectory
 from mcgs_warp.frontend.depth import grid_depth
 from mcgs_warp.frontend.flow import DISFlow, GuidedDIS
 from mcgs_warp.geometry import se3_exp, yaw_pitch_roll
@@ -24,7 +24,9 @@ DRIFT_STEP = np.array([0.0, 0.01, 0.0, 0.0, 0.0, np.radians(0.08)])  # (rho m, p
 
 @pytest.fixture(scope="module")
 def loop_seq(tmp_path_factory):
-    return generate(tmp_path_factory.mktemp("graph") / "loop", n_cameras=3, n_frames=40, seed=1, progress=False, trajectory="loop")
+    """40 keyframe-like samples of the full 35.5 m room loop (0.9 m apart)."""
+    full_loop = loop_trajectory(40, max_step=np.inf)
+    return generate(tmp_path_factory.mktemp("graph") / "loop", n_cameras=3, seed=1, progress=False, trajectory=full_loop)
 
 
 def make_buffer(seq, frames, poses=None) -> KeyframeBuffer:

@@ -162,14 +162,20 @@ def test_depth_modes_write_what_they_say(tmp_path):
 
 def test_loop_trajectory_closes_and_revisits():
     """``--trajectory loop``: one closed loop; the last pose is one step short of the
-    first (a revisit), headings follow the path, and it stays in the obstacle-free lane."""
-    from mcgs_warp.data.synthetic import loop_trajectory
+    first (a revisit), headings follow the path, and it stays in the obstacle-free lane.
+    Every length moves the rig the same distance per frame (so lengths compare like with
+    like); 640 frames drive the full 35.5 m loop, 1280 the same loop at half the speed."""
+    from mcgs_warp.data.synthetic import LOOP_FULL, LOOP_STEP, loop_trajectory
 
-    for n in (40, 160, 640):
+    for n in (40, 160, 640, 1280):
         T = loop_trajectory(n).poses
         steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
         assert np.allclose(steps, steps.mean(), rtol=0.02)  # constant speed
-        gap = np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3])
+        path = steps.sum() + np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3])
+        if n <= 640:
+            assert steps.mean() == pytest.approx(LOOP_STEP, rel=0.02)
+        assert path == pytest.approx(min(LOOP_FULL, n * LOOP_STEP), rel=0.02)
+        gap = np.linalg.norm(T[-1, :2, 3] - T[0, :2, 3])  # (the height's bob is not periodic)
         assert gap < 1.5 * steps.mean()  # back at the start
         assert np.all(np.abs(T[:, 1, 3]) < 1.6) and T[:, 0, 3].min() > -2.0
         heading = T[:-1, :3, 0]  # body x axis
@@ -177,6 +183,8 @@ def test_loop_trajectory_closes_and_revisits():
         cos = np.sum(heading * move, 1) / np.linalg.norm(move, axis=1)
         assert cos.min() > 0.9
         assert np.allclose(loop_trajectory(n).poses, T)
+    full = loop_trajectory(40, max_step=np.inf).poses  # the full loop, keyframe-spaced
+    assert np.ptp(full[:, 0, 3]) == pytest.approx(LOOP_FULL / 2 - np.pi * 1.2 + 2 * 1.2, rel=0.05)
 
 
 def test_cli_synth_casts_a_rig_of_your_own(tmp_path):
