@@ -88,8 +88,9 @@ class KeyframeBuffer:
 
             cams = wp.array([c.warp_camera() for c in self.rig.cameras], dtype=Camera, device=self.device)
             shape = (len(self.rig), max(c.height for c in self.rig.cameras), max(c.width for c in self.rig.cameras))
-            self._full_rays = wp.zeros(shape, dtype=wp.vec3, device=self.device)
-            wp.launch(grid_rays_kernel, dim=shape, inputs=[cams], outputs=[self._full_rays], device=self.device)
+            rays = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+            wp.launch(grid_rays_kernel, dim=shape, inputs=[cams], outputs=[rays], device=self.device)
+            self._full_rays = rays  # only once filled: another thread may be asking too
         return self._full_rays
 
     def __len__(self) -> int:

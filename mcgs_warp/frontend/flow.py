@@ -14,9 +14,12 @@ paper uses a learned recurrent flow network (RFT); here:
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from ..buffer import KeyframeBuffer, grid_pixels
+from ..kernels.launch import cpu_workers
 
 
 class FlowProvider:
@@ -50,6 +53,7 @@ class DISFlow(FlowProvider):
         import cv2
 
         presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST, "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+        self.settings = (preset, sigma, finest_scale, patch_size, smoothness)
         self.dis = cv2.DISOpticalFlow_create(presets[preset])
         if finest_scale is not None:
             self.dis.setFinestScale(finest_scale)
@@ -58,6 +62,11 @@ class DISFlow(FlowProvider):
         if smoothness is not None:
             self.dis.setVariationalRefinementAlpha(smoothness)
         self.sigma = sigma
+
+    def twin(self) -> "DISFlow":
+        """A new instance with the same settings (an OpenCV DIS object is not thread-safe:
+        one per thread)."""
+        return DISFlow(*self.settings)
 
     @staticmethod
     def _grey(img):
@@ -317,6 +326,7 @@ class GuidedDIS(FlowProvider):
         self.photo_sigma = photo_sigma  # grey levels in [0, 1]
         self.settled_px = settled_px  # full-resolution px (see settled)
         self.settled_outliers = settled_outliers
+        self._twins: list[DISFlow] = []  # one more DIS per extra thread (correspondences)
 
     def settled(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """bool [E]: edges whose current geometry already predicts their stored matches
@@ -343,36 +353,69 @@ class GuidedDIS(FlowProvider):
         """Targets and weights of ``edges``; ``photometric=False`` leaves out the photometric
         factor (:meth:`photometric`): the geometric decisions built on this provider (is the
         prediction good enough to guide, is a loop confirmed) judge the geometry alone."""
+        E = len(edges)
+        targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
+        weights = np.zeros((E, buffer.h, buffer.w), np.float32)
+        poses, disp = buffer.get_poses(), buffer.disp.numpy()
+
+        def match(worker: int) -> None:
+            dis = self.dis if worker == 0 else self._twins[worker - 1]
+            for e in range(worker, E, workers):
+                self._match(buffer, edges[e], poses, disp, dis, targets[e], weights[e])
+
+        workers = max(1, min(cpu_workers(), E))
+        while len(self._twins) < workers - 1:
+            self._twins.append(self.dis.twin())
+        if workers == 1:
+            match(0)
+        else:
+            # Edges are independent: one thread each, every thread with its own DIS and
+            # OpenCV single-threaded meanwhile (DIS alone keeps only ~1.8 of 2 cores busy,
+            # and the reprojection and remaps around it none). Same result as serial.
+            import cv2
+            import warp as wp
+
+            from ..kernels import stereo
+
+            wp.load_module(stereo, device=buffer.device)  # here, not raced by the threads
+            buffer.full_rays  # made on first use: here too
+            threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+            try:
+                with ThreadPoolExecutor(workers) as pool:
+                    list(pool.map(match, range(workers)))
+            finally:
+                cv2.setNumThreads(threads)
+        return self.photometric(buffer, edges, targets, weights) if photometric else (targets, weights)
+
+    def _match(self, buffer: KeyframeBuffer, edge, poses: np.ndarray, disp: np.ndarray, dis: DISFlow, target: np.ndarray, weight: np.ndarray) -> None:
+        """One edge ``(i, ci, j, cj, ...)``: writes its ``target`` [h,w,2] and ``weight`` [h,w]."""
         import cv2
 
         from ..kernels.stereo import reproject
         from .depth import upsample_inverse_depth
 
-        E, s = len(edges), buffer.stride
-        targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
-        weights = np.zeros((E, buffer.h, buffer.w), np.float32)
-        rig, poses, disp = buffer.rig, buffer.get_poses(), buffer.disp.numpy()
-        for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
-            spec_i, spec_j = rig.cameras[ci], rig.cameras[cj]
-            hr, wr = spec_i.height // s, spec_i.width // s
-            full, _ = upsample_inverse_depth(disp[i, ci, :hr, :wr], spec_i, s)
-            T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
-            inv = np.where(full > 0, 1.0 / np.maximum(full, 1e-6), 0.0)
-            pred = reproject(buffer.full_rays[int(ci)][: spec_i.height, : spec_i.width], inv, T, spec_j.warp_camera(), buffer.device)  # NaN where unknown
-            mx = np.nan_to_num(pred[..., 0], nan=-1e4).astype(np.float32)
-            my = np.nan_to_num(pred[..., 1], nan=-1e4).astype(np.float32)
-            warped = cv2.remap(buffer.images[j][cj], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            flow, conf = self.dis.flow(buffer.images[i][ci], warped)
-            uv = grid_pixels(spec_i, s).astype(np.float32)
-            ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
-            q = uv + flow[vi, ui]
-            # the prediction at p + r; NaN (unknown) neighbours make the sample NaN, never a blend
-            t = np.stack([cv2.remap(np.ascontiguousarray(pred[..., a], dtype=np.float32), q[..., 0], q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan) for a in (0, 1)], -1)
-            with np.errstate(invalid="ignore"):
-                ok = np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
-            targets[e, :hr, :wr] = np.where(ok[..., None], to_reduced(t.astype(np.float64), s), 0.0)
-            weights[e, :hr, :wr] = conf[vi, ui] * ok
-        return self.photometric(buffer, edges, targets, weights) if photometric else (targets, weights)
+        s, rig = buffer.stride, buffer.rig
+        i, ci, j, cj = (int(v) for v in edge[:4])
+        spec_i, spec_j = rig.cameras[ci], rig.cameras[cj]
+        hr, wr = spec_i.height // s, spec_i.width // s
+        full, _ = upsample_inverse_depth(disp[i, ci, :hr, :wr], spec_i, s)
+        T = np.linalg.inv(poses[j] @ spec_j.T_b_c) @ poses[i] @ spec_i.T_b_c
+        inv = np.where(full > 0, 1.0 / np.maximum(full, 1e-6), 0.0)
+        pred = reproject(buffer.full_rays[ci][: spec_i.height, : spec_i.width], inv, T, spec_j.warp_camera(), buffer.device)  # NaN where unknown
+        mx = np.nan_to_num(pred[..., 0], nan=-1e4).astype(np.float32)
+        my = np.nan_to_num(pred[..., 1], nan=-1e4).astype(np.float32)
+        warped = cv2.remap(buffer.images[j][cj], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        flow, conf = dis.flow(buffer.images[i][ci], warped)
+        uv = grid_pixels(spec_i, s).astype(np.float32)
+        ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
+        q = uv + flow[vi, ui]
+        # the prediction at p + r; NaN (unknown) neighbours make the sample NaN, never a blend
+        t = np.stack([cv2.remap(np.ascontiguousarray(pred[..., a], dtype=np.float32), q[..., 0], q[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan) for a in (0, 1)], -1)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
+        target[:hr, :wr] = np.where(ok[..., None], to_reduced(t.astype(np.float64), s), 0.0)
+        weight[:hr, :wr] = conf[vi, ui] * ok
 
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
         """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel:

@@ -250,6 +250,28 @@ def test_guided_flow_follows_the_geometry(synthetic_seq):
     assert np.median(g_err) < 0.5 * np.median(np.concatenate(p_err)), (np.median(g_err), np.median(np.concatenate(p_err)))
 
 
+def test_guided_flow_threads_match_one_thread(synthetic_seq, monkeypatch):
+    """GuidedDIS matches its edges on several threads (one DIS each, OpenCV single-threaded
+    meanwhile): the result equals one thread's bit for bit, and OpenCV's thread count is
+    restored afterwards."""
+    import cv2
+
+    from mcgs_warp.frontend.flow import DISFlow, GuidedDIS
+    from problems import Problem
+
+    P = Problem(synthetic_seq, [0, 2, 4], cross_view=True)
+    P.perturb(np.random.default_rng(5), trans=0.02, rot_deg=0.5, depth_noise=0.05)
+    edges = P.edges[:7]  # more edges than threads, not a multiple of them
+    results = {}
+    threads = cv2.getNumThreads()
+    for n in ("3", "1"):  # threads first: on a fresh buffer (its full-resolution rays not made yet)
+        monkeypatch.setenv("MCGS_WARP_CPU_THREADS", n)
+        results[n] = GuidedDIS(DISFlow()).correspondences(P.buf, edges)
+        assert cv2.getNumThreads() == threads
+    assert (results["1"][1] > 0.5).mean() > 0.3  # real matches, not empty maps
+    assert np.array_equal(results["1"][0], results["3"][0]) and np.array_equal(results["1"][1], results["3"][1])
+
+
 def test_new_edges_fall_back_to_plain_dis_when_the_prediction_cannot_guide(synthetic_seq):
     """GuidedOrRaw: with a good pose guess new edges are the guided ones; when the guess is
     far off (keyframe 1 turned by 60 deg, as after a sudden turn under constant velocity) the
