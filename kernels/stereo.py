@@ -784,6 +784,56 @@ def reproject(rays, inv_depth: np.ndarray, T_j_i: np.ndarray, cam_j: Camera, dev
     return out
 
 
+@wp.kernel
+def guided_upsample_kernel(
+    disp: wp.array(dtype=float, ndim=2),  # [h,w] reduced-grid inverse depth (1/m, 0 = unknown)
+    image: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] RGB in [0,1]: the guide
+    stride: int,
+    radius: int,  # cells: the 2r x 2r grid samples around a pixel
+    sigma_color: float,  # RGB distance
+    sigma_space: float,  # cells
+    depth: wp.array(dtype=float, ndim=2),  # [H,W] out: m, 0 = unknown
+):
+    """Joint bilateral upsampling of one pixel (:func:`mcgs_warp.frontend.depth.upsample_inverse_depth_guided`).
+    The weights are float64: a colour mismatch of ~1 (a thin pole no grid sample shares)
+    gives exp(-100) or less, zero in float32, yet it must still decide between samples."""
+    y, x = wp.tid()
+    h = disp.shape[0]
+    w = disp.shape[1]
+    H = image.shape[0]
+    W = image.shape[1]
+    o = stride // 2
+    gu = wp.float64(x - o) / wp.float64(stride)  # continuous grid coordinates of the pixel
+    gv = wp.float64(y - o) / wp.float64(stride)
+    cu = int(wp.floor(gu))
+    cv = int(wp.floor(gv))
+    centre = image[y, x]
+    ss = wp.float64(sigma_space) * wp.float64(sigma_space)
+    sc = wp.float64(sigma_color) * wp.float64(sigma_color)
+    num = wp.float64(0.0)
+    den = wp.float64(0.0)
+    for dv in range(-radius + 1, radius + 1):
+        for du in range(-radius + 1, radius + 1):
+            qu = cu + du
+            qv = cv + dv
+            if qu >= 0 and qu < w and qv >= 0 and qv < h:
+                d = disp[qv, qu]
+                if d > 0.0:
+                    eu = gu - wp.float64(qu)
+                    ev = gv - wp.float64(qv)
+                    diff = centre - image[wp.min(qv * stride + o, H - 1), wp.min(qu * stride + o, W - 1)]
+                    c2 = wp.float64(wp.dot(diff, diff))
+                    wgt = wp.exp(wp.float64(-0.5) * (eu * eu + ev * ev) / ss - wp.float64(0.5) * c2 / sc)
+                    num += wgt * wp.float64(d)
+                    den += wgt
+    out = float(0.0)
+    if den > wp.float64(0.0):
+        inv = num / den
+        if inv > wp.float64(0.0):
+            out = float(wp.float64(1.0) / wp.max(inv, wp.float64(1.0e-9)))
+    depth[y, x] = out
+
+
 def depth_candidates(steps=(8, 16), factors=(0.95, 0.98, 1.02, 1.05)) -> np.ndarray:
     """[D,3] candidates ``(dx, dy, factor)`` of :func:`propagate_depth`: the pixel's own
     depth first, the depths of the 8 pixels ``step`` away around it (axes and diagonals)

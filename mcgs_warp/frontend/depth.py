@@ -139,37 +139,31 @@ def upsample_inverse_depth(disp: np.ndarray, spec, stride: int) -> tuple[np.ndar
     return full, known
 
 
-def upsample_inverse_depth_guided(disp: np.ndarray, spec, stride: int, image: np.ndarray, sigma_color: float = 0.1, radius: int = 1, sigma_space: float = 0.5) -> np.ndarray:
+def upsample_inverse_depth_guided(disp: np.ndarray, spec, stride: int, image: np.ndarray, sigma_color: float = 0.1, radius: int = 1, sigma_space: float = 0.5, device=None) -> np.ndarray:
     """Joint bilateral upsampling (Kopf et al. 2007) of reduced-grid inverse depth [h,w]
-    (1/m, 0 = unknown) to full-resolution depth [H,W] (m, 0 = unknown) of camera ``spec``,
+    (1/m, 0 = unknown) to full-resolution depth [H,W] of camera ``spec`` (m, 0 = unknown),
     guided by its full-resolution ``image`` [H,W,3] in [0,1]: each pixel averages the known
     grid samples of the ``2 radius`` x ``2 radius`` cells around it, weighted by distance
     (``sigma_space`` cells) and by colour similarity to the pixel (``sigma_color``), so a
     depth edge stays where the image edge is instead of spreading over a cell as bilinear
     interpolation does. Unlike bilinear interpolation it fills a pixel as soon as one of
-    those samples is known; pixels with none get 0."""
+    those samples is known; pixels with none get 0. A Warp kernel
+    (:func:`~mcgs_warp.kernels.stereo.guided_upsample_kernel`) on ``device``."""
+    import warp as wp
+
+    from ..kernels.stereo import guided_upsample_kernel
+
+    device = wp.get_device(device)
     H, W = spec.height, spec.width
-    h, w = disp.shape
-    o = stride // 2
-    v, u = np.mgrid[0:H, 0:W]
-    gu, gv = (u - o) / stride, (v - o) / stride  # continuous grid coordinates of each pixel
-    cu, cv = np.floor(gu).astype(int), np.floor(gv).astype(int)
-    img = np.asarray(image, dtype=np.float32)
-    num = np.zeros((H, W), np.float64)
-    den = np.zeros((H, W), np.float64)
-    for dv in range(-radius + 1, radius + 1):
-        for du in range(-radius + 1, radius + 1):
-            qu, qv = cu + du, cv + dv
-            inside = (qu >= 0) & (qu < w) & (qv >= 0) & (qv < h)
-            qu_c, qv_c = np.clip(qu, 0, w - 1), np.clip(qv, 0, h - 1)
-            d = disp[qv_c, qu_c]
-            ok = inside & (d > 0)
-            dist2 = (gu - qu) ** 2 + (gv - qv) ** 2
-            col = img[np.clip(qv_c * stride + o, 0, H - 1), np.clip(qu_c * stride + o, 0, W - 1)]
-            c2 = ((img - col) ** 2).sum(-1)
-            wgt = np.where(ok, np.exp(-0.5 * dist2 / sigma_space**2 - 0.5 * c2 / sigma_color**2), 0.0)
-            num += wgt * d
-            den += wgt
-    with np.errstate(invalid="ignore", divide="ignore"):  # float64: even a colour mismatch of 1.7 leaves den > 0
-        inv = np.where(den > 0, num / den, 0.0)
-    return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0).astype(np.float32)
+    image = np.asarray(image, np.float32)
+    if image.shape != (H, W, 3):
+        raise ValueError(f"upsample_inverse_depth_guided: image must be RGB [{H},{W},3] like camera {spec.name}, got {image.shape}")
+    depth = wp.empty((H, W), dtype=float, device=device)
+    wp.launch(
+        guided_upsample_kernel,
+        dim=(H, W),
+        inputs=[wp.array(np.ascontiguousarray(disp, np.float32), dtype=float, device=device), wp.array(np.ascontiguousarray(image), dtype=wp.vec3, device=device), int(stride), int(radius), float(sigma_color), float(sigma_space)],
+        outputs=[depth],
+        device=device,
+    )
+    return depth.numpy()

@@ -255,7 +255,7 @@ class SLAM:
         out = []
         for c, spec in enumerate(self.seq.rig.cameras):
             h, w = spec.height // s, spec.width // s
-            full = upsample_inverse_depth_guided(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s, frame.images[c])
+            full = upsample_inverse_depth_guided(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s, frame.images[c], device=buf.device)
             if depths[c] is not None:
                 # the JDSA field lives on the buffer's grid (buf.h x buf.w), this camera's part [:h,:w]
                 field = scale_field(grids[c], buf.h, buf.w)[:h, :w].astype(np.float32)

@@ -334,6 +334,51 @@ def test_guided_upsampling_keeps_depth_edges_where_the_image_has_them():
     assert (part[:, :48] > 0).all() and (part[:, 64:] == 0).all()
 
 
+def _guided_upsampling_numpy(disp, spec, stride, image, sigma_color=0.1, radius=1, sigma_space=0.5):
+    """The joint bilateral upsampling written out in NumPy (float64): the kernel's reference."""
+    H, W = spec.height, spec.width
+    h, w = disp.shape
+    o = stride // 2
+    v, u = np.mgrid[0:H, 0:W]
+    gu, gv = (u - o) / stride, (v - o) / stride
+    cu, cv = np.floor(gu).astype(int), np.floor(gv).astype(int)
+    img = np.asarray(image, np.float64)
+    num, den = np.zeros((H, W)), np.zeros((H, W))
+    for dv in range(-radius + 1, radius + 1):
+        for du in range(-radius + 1, radius + 1):
+            qu, qv = cu + du, cv + dv
+            ok = (qu >= 0) & (qu < w) & (qv >= 0) & (qv < h)
+            qu_c, qv_c = np.clip(qu, 0, w - 1), np.clip(qv, 0, h - 1)
+            d = disp[qv_c, qu_c].astype(np.float64)
+            ok &= d > 0
+            col = img[np.minimum(qv_c * stride + o, H - 1), np.minimum(qu_c * stride + o, W - 1)]
+            arg = -0.5 * ((gu - qu) ** 2 + (gv - qv) ** 2) / sigma_space**2 - 0.5 * ((img - col) ** 2).sum(-1) / sigma_color**2
+            wgt = np.where(ok, np.exp(arg), 0.0)
+            num += wgt * d
+            den += wgt
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.where(den > 0, num / den, 0.0)
+    return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0)
+
+
+@pytest.mark.parametrize("radius,stride", [(1, 8), (2, 4)])
+def test_guided_upsampling_kernel_equals_numpy(radius, stride):
+    """The Warp kernel against the NumPy formula: random inverse depths with holes, a random
+    image (colour mismatches up to 1.7: float64 weights), sizes no multiple of the stride."""
+    rng = np.random.default_rng(radius)
+    spec = CameraSpec("c", "pinhole", 61, 45, (50.0, 50.0, 30.0, 22.0))
+    disp = rng.uniform(0.05, 1.0, (45 // stride, 61 // stride)).astype(np.float32)
+    disp[rng.random(disp.shape) < 0.3] = 0.0
+    disp[:, (2 * disp.shape[1]) // 3 :] = 0.0  # wider than a pixel's reach: no depth there
+    image = rng.random((45, 61, 3)).astype(np.float32)
+    got = upsample_inverse_depth_guided(disp, spec, stride, image, radius=radius)
+    want = _guided_upsampling_numpy(disp, spec, stride, image, radius=radius)
+    assert ((got > 0) == (want > 0)).all() and (want > 0).mean() > 0.4 and (want == 0).any()
+    np.testing.assert_allclose(got, want, rtol=2e-6)
+    with pytest.raises(ValueError, match=r"image must be RGB \[45,61,3\]"):
+        upsample_inverse_depth_guided(disp, spec, stride, image[:, :, 0])
+
+
 def test_buffer_full_rays_are_each_cameras_pixel_rays(synthetic_seq):
     """One [C,H,W] ray array (the mapping loss's and the guided flow's) equals each camera's
     own unit-depth rays, also through the [c][:h,:w] view the guided flow takes; for pinhole
