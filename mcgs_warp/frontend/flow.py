@@ -363,15 +363,16 @@ class GuidedDIS(FlowProvider):
             for e in range(worker, E, workers):
                 self._match(buffer, edges[e], poses, disp, dis, targets[e], weights[e])
 
-        workers = max(1, min(cpu_workers(), E))
+        # CPU only: Warp's CUDA allocations from several threads are not safe (NVIDIA/warp#1491)
+        workers = 1 if buffer.device.is_cuda else max(1, min(cpu_workers(), E))
         while len(self._twins) < workers - 1:
             self._twins.append(self.dis.twin())
         if workers == 1:
             match(0)
         else:
-            # Edges are independent: one thread each, every thread with its own DIS and
+            # Edges are independent: threads take every workers-th edge, each with its own DIS,
             # OpenCV single-threaded meanwhile (DIS alone keeps only ~1.8 of 2 cores busy,
-            # and the reprojection and remaps around it none). Same result as serial.
+            # and the reprojection and remaps around it one). Same result as serial.
             import cv2
             import warp as wp
 
