@@ -3,8 +3,9 @@
     python benchmarks/scaling.py [--lengths 40 160 640] [--depth exact] [--out out/scaling]
 
 For each length N: ``mcgs-slam synth --trajectory loop --frames N`` (one loop back to its start
-at 0.55 m/s, the same motion per frame at every length: the full 35.5 m room loop from 640
-frames, a shorter loop below), then a full run in a fresh process (so peak memory is per run). Prints per
+at 0.55 m/s, the same distance per frame at every length: the full 35.5 m room loop from 640
+frames, a shorter loop below, whose turns are tighter: 9 degrees per frame at 40 frames against
+2.65 on the full loop), then a full run in a fresh process (so peak memory is per run). Prints per
 length: keyframes, seconds per frame, peak resident memory, global-BA seconds, SE(3)-aligned
 ATE, and the end-to-start drift (error of the relative pose between the first and the last
 keyframe, which a closed loop makes observable) before and after global BA.

@@ -59,12 +59,14 @@ def loop_trajectory(n_frames: int, max_step: float = LOOP_STEP) -> Trajectory:
     a half-turn, back along y = -r, a half-turn, ending where it started (so the last
     frames revisit the first views). Heading follows the path.
 
-    The rig moves at most ``max_step`` m per frame (default 0.55 m/s), so the motion between
-    frames is the same at every length and lengths compare like with like: ``n_frames >= 640``
-    drive the full loop (14 m legs, 1.2 m half-turns; more frames, slower), fewer drive a
-    shorter one (160 frames: 0.67 m legs; under 137 frames a circle, 40 frames: 0.35 m
-    radius, 9 degrees of heading per frame). ``max_step=np.inf``: the full loop at any
-    length (keyframe-like spacing for tests and benchmarks)."""
+    The rig moves at most ``max_step`` m per frame (default 0.55 m/s), so the distance between
+    frames is the same at every length: ``n_frames >= 640`` drive the full loop (14 m legs,
+    1.2 m half-turns, 2.65 degrees of heading per frame in them; more frames, slower), fewer
+    drive a shorter one (160 frames: 0.67 m legs; 135 frames or fewer a circle, which turns
+    faster: 40 frames, 0.35 m radius, 9 degrees per frame). ``max_step=np.inf``: the full loop
+    at any length (keyframe-like spacing for tests and benchmarks)."""
+    if not max_step > 0:
+        raise ValueError(f"loop_trajectory: max_step must be > 0 m, got {max_step}")
     t = np.arange(n_frames) / FRAME_RATE
     perimeter = min(LOOP_FULL, n_frames * max_step)
     r = min(LOOP_RADIUS, perimeter / (2 * np.pi))
@@ -204,12 +206,16 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     cast this rig instead of the built-in one's first ``n_cameras`` (body x forward, y left,
     z up; pixels of a camera without a ray, such as a fisheye's corners beyond 90 degrees,
     come out black with depth 0)."""
+    if isinstance(trajectory, Trajectory):
+        n_frames = len(trajectory.timestamps)
+        if trajectory.poses.shape != (n_frames, 4, 4):
+            raise ValueError(f"generate: the trajectory has {n_frames} timestamps but poses of shape {trajectory.poses.shape}; expected ({n_frames}, 4, 4)")
     if n_frames < 2:
         raise InputError(None, "--frames", f"expected at least 2, got {n_frames}")
     if depth not in ("exact", "mono", "none"):
         raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
     if isinstance(trajectory, Trajectory):
-        traj, n_frames = trajectory, len(trajectory.timestamps)
+        traj = trajectory
     elif trajectory in ("forward", "loop"):
         traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
     else:

@@ -14,6 +14,7 @@ paper uses a learned recurrent flow network (RFT); here:
 
 from __future__ import annotations
 
+import copy
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -50,23 +51,30 @@ class DISFlow(FlowProvider):
     measure depth, i.e. without exact sensor depth: fewer gross errors on wide edges)."""
 
     def __init__(self, preset: str = "medium", sigma: float = 1.0, finest_scale: int | None = None, patch_size: int | None = None, smoothness: float | None = None):
-        import cv2
-
-        presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST, "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
-        self.settings = (preset, sigma, finest_scale, patch_size, smoothness)
-        self.dis = cv2.DISOpticalFlow_create(presets[preset])
-        if finest_scale is not None:
-            self.dis.setFinestScale(finest_scale)
-        if patch_size is not None:
-            self.dis.setPatchSize(patch_size)
-        if smoothness is not None:
-            self.dis.setVariationalRefinementAlpha(smoothness)
+        self.settings = (preset, finest_scale, patch_size, smoothness)
+        self.dis = self._new_dis()
         self.sigma = sigma
 
+    def _new_dis(self):
+        import cv2
+
+        preset, finest_scale, patch_size, smoothness = self.settings
+        presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST, "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+        dis = cv2.DISOpticalFlow_create(presets[preset])
+        if finest_scale is not None:
+            dis.setFinestScale(finest_scale)
+        if patch_size is not None:
+            dis.setPatchSize(patch_size)
+        if smoothness is not None:
+            dis.setVariationalRefinementAlpha(smoothness)
+        return dis
+
     def twin(self) -> "DISFlow":
-        """A new instance with the same settings (an OpenCV DIS object is not thread-safe:
-        one per thread)."""
-        return DISFlow(*self.settings)
+        """A shallow copy with an OpenCV DIS object of its own (one is not thread-safe):
+        a subclass stays that subclass, with its other attributes shared."""
+        other = copy.copy(self)
+        other.dis = self._new_dis()
+        return other
 
     @staticmethod
     def _grey(img):
@@ -363,8 +371,10 @@ class GuidedDIS(FlowProvider):
             for e in range(worker, E, workers):
                 self._match(buffer, edges[e], poses, disp, dis, targets[e], weights[e])
 
-        # CPU only: Warp's CUDA allocations from several threads are not safe (NVIDIA/warp#1491)
-        workers = 1 if buffer.device.is_cuda else max(1, min(cpu_workers(), E))
+        # CPU only: Warp's CUDA allocations from several threads are not safe (NVIDIA/warp#1491);
+        # and only for a flow that can make per-thread copies of itself (DISFlow.twin)
+        threaded = not buffer.device.is_cuda and hasattr(self.dis, "twin")
+        workers = max(1, min(cpu_workers(), E)) if threaded else 1
         while len(self._twins) < workers - 1:
             self._twins.append(self.dis.twin())
         if workers == 1:

@@ -253,23 +253,41 @@ def test_guided_flow_follows_the_geometry(synthetic_seq):
 def test_guided_flow_threads_match_one_thread(synthetic_seq, monkeypatch):
     """GuidedDIS matches its edges on several threads (one DIS each, OpenCV single-threaded
     meanwhile): the result equals one thread's bit for bit, and OpenCV's thread count is
-    restored afterwards."""
+    restored afterwards. A DISFlow subclass keeps its own flow on every thread; a flow
+    object that cannot copy itself runs on one thread."""
     import cv2
 
     from mcgs_warp.frontend.flow import DISFlow, GuidedDIS
     from problems import Problem
 
+    class Shifted(DISFlow):  # a subclass: every thread's copy must be one too
+        def flow(self, image_a, image_b):
+            f, conf = super().flow(image_a, image_b)
+            return f + 0.5, conf
+
+    class Wrapped:  # any object with flow(a, b) may replace DIS: it gets one thread
+        def __init__(self):
+            self.inner = DISFlow()
+
+        def flow(self, image_a, image_b):
+            return self.inner.flow(image_a, image_b)
+
     P = Problem(synthetic_seq, [0, 2, 4], cross_view=True)
     P.perturb(np.random.default_rng(5), trans=0.02, rot_deg=0.5, depth_noise=0.05)
     edges = P.edges[:7]  # more edges than threads, not a multiple of them
-    results = {}
     threads = cv2.getNumThreads()
-    for n in ("3", "1"):  # threads first: on a fresh buffer (its full-resolution rays not made yet)
-        monkeypatch.setenv("MCGS_WARP_CPU_THREADS", n)
-        results[n] = GuidedDIS(DISFlow()).correspondences(P.buf, edges)
-        assert cv2.getNumThreads() == threads
-    assert (results["1"][1] > 0.5).mean() > 0.3  # real matches, not empty maps
-    assert np.array_equal(results["1"][0], results["3"][0]) and np.array_equal(results["1"][1], results["3"][1])
+    serial = {}
+    for make in (DISFlow, Shifted, Wrapped):
+        results = {}
+        for n in ("3", "1"):  # threads first: on a fresh buffer (its full-resolution rays not made yet)
+            monkeypatch.setenv("MCGS_WARP_CPU_THREADS", n)
+            results[n] = GuidedDIS(make()).correspondences(P.buf, edges)
+            assert cv2.getNumThreads() == threads
+        assert np.array_equal(results["1"][0], results["3"][0]) and np.array_equal(results["1"][1], results["3"][1]), make
+        serial[make] = results["1"]
+    assert (serial[DISFlow][1] > 0.5).mean() > 0.3  # real matches, not empty maps
+    assert all(not np.array_equal(serial[Shifted][0][e], serial[DISFlow][0][e]) for e in range(len(edges)))  # every edge shifted
+    assert np.array_equal(serial[Wrapped][0], serial[DISFlow][0])
 
 
 def test_new_edges_fall_back_to_plain_dis_when_the_prediction_cannot_guide(synthetic_seq):

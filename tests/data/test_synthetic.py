@@ -183,8 +183,24 @@ def test_loop_trajectory_closes_and_revisits():
         cos = np.sum(heading * move, 1) / np.linalg.norm(move, axis=1)
         assert cos.min() > 0.9
         assert np.allclose(loop_trajectory(n).poses, T)
+    with pytest.raises(ValueError, match="max_step must be > 0"):
+        loop_trajectory(40, max_step=0.0)
     full = loop_trajectory(40, max_step=np.inf).poses  # the full loop, keyframe-spaced
     assert np.ptp(full[:, 0, 3]) == pytest.approx(LOOP_FULL / 2 - np.pi * 1.2 + 2 * 1.2, rel=0.05)
+
+
+def test_generate_checks_a_trajectory_of_your_own(tmp_path):
+    """``generate(trajectory=Trajectory)``: its length is the frame count (one pose is too
+    few) and its poses must match its timestamps; nothing is written for a bad one."""
+    from mcgs_warp.data.trajectory import Trajectory
+    from mcgs_warp.errors import InputError
+
+    T = np.repeat(np.eye(4)[None], 3, 0)
+    with pytest.raises(ValueError, match=r"3 timestamps but poses of shape \(2, 4, 4\)"):
+        generate(tmp_path / "a", trajectory=Trajectory(np.arange(3) / 10.0, T[:2]), progress=False)
+    with pytest.raises(InputError, match="at least 2, got 1"):
+        generate(tmp_path / "b", trajectory=Trajectory(np.zeros(1), T[:1]), progress=False)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
 def test_cli_synth_casts_a_rig_of_your_own(tmp_path):
