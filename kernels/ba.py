@@ -514,18 +514,27 @@ def grid_cell(p: int, size: int, nodes: int):
 
 
 @wp.func
-def scale_at(scales: wp.array(dtype=wp.float64, ndim=4), k: int, c: int, y: int, x: int, h: int, w: int):
-    """The bilinear scale ``B(p, s)`` of view (k, c) at grid pixel (x, y)."""
-    m = scales.shape[2]
-    n = scales.shape[3]
+def grid_nodes(y: int, x: int, h: int, w: int, m: int, n: int):
+    """The 4 nodes of an m x n grid around grid pixel (x, y) of h x w, as flat indices
+    ``i n + j``, and their bilinear weights (summing to 1)."""
     i, fy = grid_cell(y, h, m)
     j, fx = grid_cell(x, w, n)
     i1 = wp.min(i + 1, m - 1)
     j1 = wp.min(j + 1, n - 1)
     one = wp.float64(1.0)
-    top = (one - fx) * scales[k, c, i, j] + fx * scales[k, c, i, j1]
-    bottom = (one - fx) * scales[k, c, i1, j] + fx * scales[k, c, i1, j1]
-    return (one - fy) * top + fy * bottom
+    nodes = wp.vec4i(i * n + j, i * n + j1, i1 * n + j, i1 * n + j1)
+    return nodes, wp.vec4d((one - fy) * (one - fx), (one - fy) * fx, fy * (one - fx), fy * fx)
+
+
+@wp.func
+def scale_at(scales: wp.array(dtype=wp.float64, ndim=4), k: int, c: int, y: int, x: int, h: int, w: int):
+    """The bilinear scale ``B(p, s)`` of view (k, c) at grid pixel (x, y)."""
+    n = scales.shape[3]
+    nodes, weights = grid_nodes(y, x, h, w, scales.shape[2], n)
+    s = wp.float64(0.0)
+    for r in range(4):
+        s += weights[r] * scales[k, c, nodes[r] // n, nodes[r] % n]
+    return s
 
 
 @wp.kernel
@@ -583,13 +592,8 @@ def jdsa_normal_kernel(
     if wt <= wp.float64(0.0):
         return
     depth = wp.float64(1.0) / d
-    i, fy = grid_cell(y, h, m)
-    j, fx = grid_cell(x, w, n)
-    i1 = wp.min(i + 1, m - 1)
-    j1 = wp.min(j + 1, n - 1)
-    one = wp.float64(1.0)
-    nodes = wp.vec4i(i * n + j, i * n + j1, i1 * n + j, i1 * n + j1)
-    a = wp.vec4d((one - fy) * (one - fx) * prior, (one - fy) * fx * prior, fy * (one - fx) * prior, fy * fx * prior)
+    nodes, weights = grid_nodes(y, x, h, w, m, n)
+    a = weights * prior  # d(d+ B(p, s)) / d s at the 4 nodes
     for r in range(4):
         wp.atomic_add(Atb, v, c, nodes[r], wt * a[r] * depth)
         for q in range(4):

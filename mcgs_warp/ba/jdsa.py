@@ -6,8 +6,9 @@ alternates two steps and never solves poses and scales jointly:
 
 1. MCBA with the scaled prior as an inverse-depth prior (see :class:`MCBA`);
 2. per view, the scales that best align the scaled prior with the optimized depth,
-   ``min_s sum_p (d+(p) B(p, s) - d(p))^2 + reg |s - 1|^2``, a small linear
-   least-squares problem (B is linear in s).
+   ``min_s sum_p w(p) (d+(p) B(p, s) - d(p))^2 + lam |s - s_now|^2``, a small linear
+   least-squares problem (B is linear in s; the tiny Tikhonov term, :func:`tikhonov_solve`,
+   keeps grid nodes without data where they are).
 
 Grid nodes sit on the image corners and spread evenly between them.
 """
@@ -56,10 +57,15 @@ def solve_scales(depth_prior: np.ndarray, depth: np.ndarray, grid_shape=(4, 6), 
     A = Phi * depth_prior.ravel()[:, None]
     AtA = A.T @ (A * wts[:, None])
     Atb = A.T @ (wts * depth.ravel())
-    scale = np.trace(AtA) / (m * n) + 1e-12
-    lam = reg * scale
     s0 = np.ones(m * n) if start is None else np.asarray(start, np.float64).ravel()
-    return np.linalg.solve(AtA + lam * np.eye(m * n), Atb + lam * s0).reshape(m, n)
+    return tikhonov_solve(AtA, Atb, s0, reg).reshape(m, n)
+
+
+def tikhonov_solve(AtA: np.ndarray, Atb: np.ndarray, start: np.ndarray, reg: float) -> np.ndarray:
+    """``s`` [mn] from the normal equations with ``lam |s - start|^2`` added, ``lam = reg``
+    times the mean diagonal of ``AtA`` (relative, so independent of depth units and weights)."""
+    lam = reg * (np.trace(AtA) / len(Atb) + 1e-12)
+    return np.linalg.solve(AtA + lam * np.eye(len(Atb)), Atb + lam * np.ravel(start))
 
 
 def scaled_prior(buffer, keyframes) -> tuple:
@@ -92,9 +98,8 @@ def update_scales(buffer, keyframes, stats=None, hold_mean: bool = False, reg: f
     depth counts with the prior's confidence. A view with no weight keeps its grid.
 
     The normal equations are reduced on the device (:func:`~mcgs_warp.kernels.ba.jdsa_normal_kernel`);
-    only the ``(m n) x (m n)`` system of each fitted view and its grid cross to the host,
-    where they are solved as :func:`solve_scales` does (Tikhonov ``reg`` towards the
-    current grid).
+    only the ``(m n) x (m n)`` system of each fitted view and its grid cross to the host
+    (:func:`tikhonov_solve`, towards the current grid, as :func:`solve_scales`).
 
     ``hold_mean``: the fit may not change the mean log scale of the grids it moves (they
     are divided by the change). Without correspondences that measure metric depth (no
@@ -130,8 +135,7 @@ def update_scales(buffer, keyframes, stats=None, hold_mean: bool = False, reg: f
     new = old.copy()
     solved = wsum > 0  # [V,C]; a view with no weight (nothing measured) keeps its grid
     for v, c in zip(*np.nonzero(solved)):
-        lam = reg * (np.trace(AtA[v, c]) / mn + 1e-12)
-        new[v, c] = np.linalg.solve(AtA[v, c] + lam * np.eye(mn), Atb[v, c] + lam * old[v, c].ravel()).reshape(m, n)
+        new[v, c] = tikhonov_solve(AtA[v, c], Atb[v, c], old[v, c], reg).reshape(m, n)
     if hold_mean and solved.any():
         # the mean over the grids this fit moved: untouched grids must not dilute the hold
         shift = np.log(np.maximum(new[solved], 1e-12)).mean() - np.log(np.maximum(old[solved], 1e-12)).mean()
