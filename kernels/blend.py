@@ -135,6 +135,15 @@ def blend_kernel(
 
 
 @wp.func
+def camera_tile_row(row: int, tiles_per_camera: int, tiles_x: int):
+    """Camera and tile row of the tile blenders' launch row ``row`` (rows count the
+    (camera, tile row) pairs camera-major, so CPU bands of them balance across cameras)."""
+    tiles_y = tiles_per_camera // tiles_x
+    c = row // tiles_y
+    return c, row - c * tiles_y
+
+
+@wp.func
 def splat_box(r: splat_record, x0: int, y0: int, x1: int, y1: int):
     """Pixel box ``(bx0, by0, bx1, by1)`` (inclusive, clipped to ``[x0, x1) x [y0, y1)``)
     outside which :func:`splat_alpha` is 0: the ellipse ``d^T conic d <= min(9, support)``
@@ -184,9 +193,7 @@ def blend_tiles_kernel(
     equal. Each pixel's running sums live in one ``state`` entry (:data:`blend_state`,
     one load and one store per splat-pixel pair) and reach the outputs at the end."""
     u, tx = wp.tid()
-    tiles_y = tiles_per_camera // tiles_x
-    c = (u + row0) // tiles_y
-    ty = (u + row0) - c * tiles_y
+    c, ty = camera_tile_row(u + row0, tiles_per_camera, tiles_x)
     cam = cameras[c]
     H = out_color.shape[1]
     W = out_color.shape[2]
@@ -400,9 +407,7 @@ def blend_backward_tiles_kernel(
     terms are those of :func:`blend_backward_kernel`; only the summation order (and so float32
     rounding) differs."""
     u, tx = wp.tid()
-    tiles_y = tiles_per_camera // tiles_x
-    c = (u + row0) // tiles_y
-    ty = (u + row0) - c * tiles_y
+    c, ty = camera_tile_row(u + row0, tiles_per_camera, tiles_x)
     cam = cameras[c]
     x0 = tx * TILE_SIZE
     y0 = ty * TILE_SIZE
