@@ -56,11 +56,13 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
     demo.set_defaults(func=cmd_demo)
 
-    run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC or TUM RGB-D)")
+    run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC, KITTI odometry or TUM RGB-D)")
     run.add_argument("--data", required=True, help="sequence folder")
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
     run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
+    run.add_argument("--kitti-cameras", choices=("grey", "colour"), default="grey",
+                     help="KITTI odometry folders: the grey pair image_0/image_1 (default) or the colour pair image_2/image_3")
     run.add_argument("--depth", choices=("auto", "sensor", "stereo", "none"), default=None,
                      help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
                      "cameras), none, or auto (default: sensor when every frame has depth, "
@@ -139,7 +141,7 @@ def parse_cameras(text):
 def cmd_run(args) -> int:
     from .system.run import run_sequence
 
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume)
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume)
     print(f"run finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0

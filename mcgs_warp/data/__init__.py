@@ -12,11 +12,13 @@ from .sequence import Frame, FolderSequence, FolderWriter, Sequence
 from .trajectory import Trajectory, read_tum, write_tum
 
 
-def open_sequence(path, rig_path=None) -> Sequence:
+def open_sequence(path, rig_path=None, kitti_cameras: str = "grey") -> Sequence:
     """Open a sequence folder: ours (``rig.yaml`` + ``timestamps.txt``), EuRoC
-    (``mav0/`` or ``cam0/data.csv``) or TUM RGB-D (``rgb.txt``). ``rig_path`` overrides
-    the TUM calibration."""
+    (``mav0/`` or ``cam0/data.csv``), KITTI odometry (``calib.txt`` + ``image_0/``; the
+    grey pair, or ``kitti_cameras="colour"``) or TUM RGB-D (``rgb.txt``). ``rig_path``
+    overrides the TUM calibration."""
     from .euroc import EurocSequence, is_euroc
+    from .kitti import KittiSequence, is_kitti
     from .tum import TumSequence
 
     path = Path(path)
@@ -26,12 +28,14 @@ def open_sequence(path, rig_path=None) -> Sequence:
         return FolderSequence(path)
     if is_euroc(path):
         return EurocSequence(path)
+    if is_kitti(path):
+        return KittiSequence(path, kitti_cameras)
     if (path / "rgb.txt").is_file():
         return TumSequence(path, rig_path)
     if not any(path.iterdir()):
         raise InputError(path, None, "data folder is empty")
     raise InputError(
-        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC) or rgb.txt (TUM RGB-D)"
+        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC), calib.txt + image_0/ (KITTI odometry) or rgb.txt (TUM RGB-D)"
     )
 
 

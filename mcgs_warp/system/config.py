@@ -27,6 +27,7 @@ CHOICES = {
 class TrackingConfig:
     depth: str = "auto"  # auto | sensor | stereo | none (see mcgs_warp.frontend.depth.choose_prior)
     correspondences: str = "estimated"  # estimated | ground-truth (oracle, synthetic sequences only)
+    max_width: int = 640  # px: images are resampled (intrinsics scaled) so the widest camera is at most this wide for tracking and mapping (0: native resolution)
     stride: int = 8  # px: inverse depth and flow live on every 8th pixel (the reduced grid)
     window: int = 8  # keyframes in the MCBA sliding window
     keyframe_flow_px: float = THRESHOLD_PX  # full-resolution px: new keyframe when the mean flow since the last exceeds this
@@ -36,6 +37,8 @@ class TrackingConfig:
     huber_px: float = MCBAConfig.huber_delta  # grid px: Huber threshold of the reprojection residuals
     prior_weight: float = 30.0  # px^2 m^2: weight of a metric depth prior (sensor, stereo, monocular) in inverse depth, times its confidence
     jdsa: bool = True  # fit the JDSA scale grids (eq. 5) after every MCBA round, for inexact priors
+    min_confident: float = 0.05  # a new keyframe with confident correspondences on fewer of its grid pixels than this fraction is a tracking failure
+    max_residual_ratio: float = 10.0  # ... and so is one whose final robust cost per unit of correspondence weight exceeds this times the run's median
     flow_rounds: int = 2  # MCBA (+ JDSA) rounds per keyframe; between them correspondences follow the new geometry
 
 

@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 from ..data import open_sequence
+from ..data.resample import at_processing_resolution
 from ..data.sequence import CameraSubset
 from .config import RunConfig, load_run_config
 from .outputs import write_outputs
@@ -15,7 +16,7 @@ from .slam import SLAM, Progress
 CHECKPOINT = "checkpoint.npz"
 
 
-def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None) -> dict:
+def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None) -> dict:
     """Run SLAM on the sequence folder ``data`` and write everything to ``out``; returns the
     metrics. The online state is checkpointed to ``out/checkpoint.npz`` after every
     keyframe; ``resume`` continues an interrupted run from it."""
@@ -27,9 +28,10 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
         cfg.tracking.depth = depth
     if correspondences is not None:
         cfg.tracking.correspondences = correspondences
-    seq = open_sequence(data)
+    seq = open_sequence(data, kitti_cameras=kitti_cameras)
     if cameras is not None:
         seq = CameraSubset(seq, cameras)
+    seq = at_processing_resolution(seq, cfg.tracking.max_width)
     Path(out).mkdir(parents=True, exist_ok=True)
     slam = SLAM(seq, cfg, device=device, progress=Progress(progress))
     result = slam.run(checkpoint=Path(out) / CHECKPOINT, resume=resume, stop_after_keyframes=stop_after_keyframes)
