@@ -133,6 +133,7 @@ class EurocSequence(Sequence):
             raise InputError(self.root, None, "cam0 and cam1 share no timestamps")
         self._check_dropped(len(set(stamps[0]) | set(stamps[1])), len(common), len(stamps[0]), len(stamps[1]))
         self.rig = Rig(cams)
+        self.gravity = np.array([0.0, 0.0, -1.0])  # the ground truth's world frame has z up
         self._ns = common
         self._files = files
         self.timestamps = np.array(common, dtype=np.float64) * 1e-9

@@ -59,6 +59,8 @@ class Sequence:
     name: str = ""
     #: whether the frames' depth is exact sensor depth (else an inexact prior that JDSA rescales)
     depth_exact: bool = True
+    #: [3] direction of gravity in the ground truth's world frame where the reader knows it (plots' top view)
+    gravity = None
 
     def depth_cameras(self) -> list[bool]:
         """Per camera: does every frame carry depth for it? (Readers check their files;
@@ -101,8 +103,7 @@ class CameraSubset(Sequence):
         self.seq, self.cameras = seq, cameras
         self.rig = seq.rig.subset(cameras)
         self.timestamps, self.groundtruth, self.name = seq.timestamps, seq.groundtruth, seq.name
-
-        self.depth_exact = seq.depth_exact
+        self.depth_exact, self.gravity = seq.depth_exact, seq.gravity
 
     def load_frame(self, k: int) -> Frame:
         f = self.seq[k]

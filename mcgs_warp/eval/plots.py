@@ -46,15 +46,44 @@ def _smooth(v: np.ndarray, n: int) -> np.ndarray:
     return np.where(den > 0, num / np.maximum(den, 1), np.nan)
 
 
-def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None = None) -> Figure:
-    """Top view (x, y) of the estimate and ground truth, the estimate coloured by its position
+def view_plane(xyz, gravity=None) -> np.ndarray:
+    """[3,2] orthonormal axes of the top view of positions ``xyz`` [N,3]: the plane
+    orthogonal to ``gravity`` (a world-frame direction, any length) when it is known, else
+    the motion's principal plane (its two largest principal axes). The first axis is the
+    one the motion spreads along most; the second completes a right-handed view looking
+    against gravity (down from above), or along the least principal axis."""
+    xyz = np.asarray(xyz, float)
+    centred = xyz - xyz.mean(0)
+    if gravity is not None and np.linalg.norm(gravity) > 0:
+        up = -np.asarray(gravity, float) / np.linalg.norm(gravity)
+        flat = centred - np.outer(centred @ up, up)
+        _, _, vt = np.linalg.svd(flat, full_matrices=True) if len(xyz) > 1 else (None, None, np.eye(3))
+        a = vt[0] - (vt[0] @ up) * up
+        if np.linalg.norm(a) < 1e-9:  # no horizontal motion: any horizontal axis
+            a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    else:
+        _, _, vt = np.linalg.svd(centred, full_matrices=True) if len(xyz) > 1 else (None, None, np.eye(3))
+        a, up = vt[0], vt[2]
+    a = a / np.linalg.norm(a)
+    b = np.cross(up, a)
+    return np.stack([a, b / np.linalg.norm(b)], 1)
+
+
+def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None = None, gravity=None, ate_label: str = "ATE") -> Figure:
+    """Top view of the estimate and ground truth, the estimate coloured by its position
     error (colorbar in cm), and the translation error over time beside it.
 
     ``est_xyz`` [N,3] are positions aligned to the ground truth, ``gt_xyz`` [N,3] the matched
     ground-truth positions (same order) or None: then only the estimate is drawn.
-    ``timestamps`` [N] (seconds) label the error axis; without them it is the pose index."""
+    ``timestamps`` [N] (seconds) label the error axis; without them it is the pose index.
+    The view is :func:`view_plane` of the ground truth (else the estimate) and ``gravity``;
+    ``ate_label`` names the alignment in the headline (``SE(3) ATE`` for a metric run)."""
     est = np.asarray(est_xyz, float)
     gt = None if gt_xyz is None else np.asarray(gt_xyz, float)
+    plane = view_plane(est if gt is None else gt, gravity)
+    origin = (est if gt is None else gt).mean(0)
+    est = (est - origin) @ plane
+    gt = None if gt is None else (gt - origin) @ plane
     if gt is None:
         fig = _figure((TRAJECTORY_SIZE[1] + 120, TRAJECTORY_SIZE[1]))
         ax = fig.add_subplot()
@@ -62,7 +91,7 @@ def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None =
     else:
         if gt.shape != est.shape:
             raise ValueError(f"estimate {est.shape} and ground truth {gt.shape} positions must match one to one")
-        err_cm = 100.0 * np.linalg.norm(est - gt, axis=1)
+        err_cm = 100.0 * np.linalg.norm(np.asarray(est_xyz, float) - np.asarray(gt_xyz, float), axis=1)  # 3D error
         fig = _figure(TRAJECTORY_SIZE)
         ax, ax_err = fig.subplots(1, 2, width_ratios=[1.1, 1])
         ax.plot(gt[:, 0], gt[:, 1], color=GT_COLOR, lw=1.2, ls="--", label="ground truth", zorder=5)  # on top: thin
@@ -76,7 +105,7 @@ def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None =
         ate = float(np.sqrt(np.mean(err_cm**2)))
         t = np.asarray(timestamps, float) - float(timestamps[0]) if timestamps is not None else np.arange(len(est))
         ax_err.plot(t, err_cm, color=EST_COLOR, lw=1.5, label="translation error")
-        ax_err.axhline(ate, color="0.4", ls=":", lw=1.2, label=f"ATE (RMSE) {ate:.2f} cm")
+        ax_err.axhline(ate, color="0.4", ls=":", lw=1.2, label=f"{ate_label} (RMSE) {ate:.2f} cm")
         ax_err.set_xlabel("time [s]" if timestamps is not None else "pose")
         ax_err.set_ylabel("translation error [cm]")
         ax_err.set_ylim(bottom=0)
@@ -84,22 +113,22 @@ def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None =
         ax_err.grid(True, alpha=0.3)
         ax_err.legend(loc="best")
         if title is None:
-            title = f"ATE {ate:.2f} cm over {len(est)} poses"
+            title = f"{ate_label} {ate:.2f} cm over {len(est)} poses"
     ax.plot(*est[0, :2], "o", color="0.3", ms=6, ls="none", label="start", zorder=6)
     ax.set_aspect("equal", adjustable="datalim")
     ax.autoscale_view()
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title("top view")
+    ax.set_xlabel("along the motion [m]")
+    ax.set_ylabel("across [m]")
+    ax.set_title("top view" if gravity is not None else "top view (principal plane of the motion)")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best")
     fig.suptitle(title if title is not None else "estimated trajectory (no ground truth)")
     return fig
 
 
-def plot_trajectory(path, est_xyz, gt_xyz=None, timestamps=None, title: str | None = None) -> Figure:
+def plot_trajectory(path, est_xyz, gt_xyz=None, timestamps=None, title: str | None = None, gravity=None, ate_label: str = "ATE") -> Figure:
     """Draw :func:`trajectory_figure` and write it to ``path`` (PNG); returns the figure."""
-    fig = trajectory_figure(est_xyz, gt_xyz, timestamps, title)
+    fig = trajectory_figure(est_xyz, gt_xyz, timestamps, title, gravity, ate_label)
     save_png(fig, path)
     return fig
 

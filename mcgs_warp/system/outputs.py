@@ -10,7 +10,9 @@
   (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
   correspondences used, for an inexact prior its error before and after JDSA's scale grids,
   counts and timings
-* ``plots/trajectory.png`` (top view, estimate vs ground truth), ``plots/mapping.png``
+* ``plots/trajectory.png`` (top view in the plane orthogonal to gravity where the reader knows
+  it, else the motion's principal plane; estimate vs ground truth, SE(3)-aligned for a run
+  with metric scale, else Sim(3)), ``plots/mapping.png``
   (loss and PSNR per mapping iteration)
 * ``config.yaml``: the resolved run configuration; ``rig.yaml`` and ``keyframes.txt``
   (keyframe rig poses, TUM) so that ``mcgs-slam export`` can rebuild the USD cameras
@@ -84,6 +86,10 @@ def prior_errors(slam) -> tuple[float | None, float | None]:
     return float(np.concatenate(raw).mean()), float(np.concatenate(scaled).mean())
 
 
+def _quantiles(values) -> dict | None:
+    return {"min": round(float(np.min(values)), 4), "median": round(float(np.median(values)), 4)} if len(values) else None
+
+
 def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     out = Path(out_dir)
     seq, buf, rig = slam.seq, slam.buf, slam.seq.rig
@@ -138,17 +144,23 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "loop_edges": int(sum(bool(c.accepted) for c in slam.loops)),  # revisit candidates global BA confirmed
         "n_frames": len(seq),
         "seconds_total": float(seconds_total),
+        "tracking_failures": len(slam.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)
+        "tracking_failure_frames": [int(f) for f in slam.failures],
+        "confident_fraction": _quantiles([h["confident"] for h in slam.health]),  # per keyframe solve: fraction of its grid pixels with a confident correspondence (min, median)
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
     gt_xyz, times = None, traj.timestamps
-    aligned = traj.positions
+    aligned, label = traj.positions, "ATE"
+    metrics["metric_scale"] = slam.metric_scale
     if seq.groundtruth is not None:
         tm, aligned, gt_xyz, times = evaluate(traj, seq.groundtruth, return_timestamps=True)
-        se3, _, _ = evaluate(traj, seq.groundtruth, with_scale=False)
-        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m})
+        se3, se3_aligned, _ = evaluate(traj, seq.groundtruth, with_scale=False)
+        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
+        # a run that claims metric scale is judged without rescaling: the plot shows what a user gets
+        aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")
     with atomic_write(out / "metrics.json") as f:
         json.dump(metrics, f, indent=2)
-    plot_trajectory(out / "plots" / "trajectory.png", aligned, gt_xyz, times)
+    plot_trajectory(out / "plots" / "trajectory.png", aligned, gt_xyz, times, gravity=getattr(seq, "gravity", None), ate_label=label)
     if result.mapping_curve:
         plot_mapping(out / "plots" / "mapping.png", *(np.array(v, float) for v in zip(*result.mapping_curve)))
     import yaml
