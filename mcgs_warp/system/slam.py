@@ -42,9 +42,9 @@ from .config import RunConfig
 GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
 log = logging.getLogger("mcgs_warp.slam")
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
-#: (2: the keyframe buffer's exposures, device priors and JDSA grids, 2026-11-27), so that
+#: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 2
+CHECKPOINT_FORMAT = 3
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
@@ -110,6 +110,9 @@ class SLAM:
         self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
+        self.failures: list = []  # frame index of every tracking failure (warning, recovery)
+        self.health: list = []  # per keyframe solve: confident fraction, residual level, accepted steps
+        self._residual_levels: list = []  # healthy solves' robust cost per unit weight
 
     @property
     def exact_depth(self) -> bool:
@@ -126,6 +129,12 @@ class SLAM:
         Without them only the prior carries the metric scale, and JDSA holds its mean
         (:func:`~mcgs_warp.ba.jdsa.update_scales`)."""
         return bool(camera_pairs(self.overlap, len(self.seq.rig), self.graph.cfg.min_camera_overlap))
+
+    @property
+    def metric_scale(self) -> bool:
+        """Whether the run measures metric scale: a metric depth prior (sensor, rig stereo,
+        monocular) or correspondences between rig cameras with known baselines."""
+        return bool(self.prior.metric or self.metric_edges)
 
     @property
     def jdsa_active(self) -> bool:
@@ -160,22 +169,60 @@ class SLAM:
             # by plain DIS where the start is too poor to guide
             g.compute(self.guided if guided_new else self.guided_or_raw if self.exact_depth else self.flow, missing[~cross])
 
-    def _solve(self, keyframes, fresh=(), guided_new: bool = False):
+    def _solve(self, keyframes, fresh=(), guided_new: bool = False) -> list:
         """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``
         outer rounds; between rounds the correspondences of edges touching ``fresh``
         keyframes follow the new geometry. Anchored Gaussians follow every pose and depth
-        change, and the mapping depth targets are refreshed."""
+        change, and the mapping depth targets are refreshed. Returns each round's
+        ``(MCBAStats, total correspondence weight)``."""
         rounds = max(1, self.cfg.tracking.flow_rounds)
+        out = []
         for r in range(rounds):
             self.measure(refresh=fresh if r > 0 else (), guided_new=guided_new)
             edges, targets, weights = self.graph.arrays(keyframes)
             before = self.buf.get_poses()
             if self.jdsa_active:
-                mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges)
+                stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges)[-1]
             else:
-                self.mcba.solve(edges, targets, weights, keyframes=keyframes)
+                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes)
+            out.append((stats, float(np.nansum(weights))))
             self.mapper.map.follow_keyframes(before, self.buf.get_poses())
         self._follow_depths(keyframes)
+        return out
+
+    def _confident_fraction(self, k: int) -> float:
+        """Fraction of keyframe ``k``'s grid pixels (all cameras) with a confident (weight >
+        0.5) correspondence to another keyframe."""
+        rows = [n for n, e in enumerate(self.graph.edges) if e[0] == k and e[2] != k]
+        if not rows:
+            return 0.0
+        edges = self.graph.edges[rows]
+        _, w = self.graph.correspondences(edges)
+        linked = np.zeros((len(self.seq.rig), self.buf.h, self.buf.w), bool)
+        for e, wt in zip(edges, w):
+            linked[int(e[1])] |= wt > 0.5
+        area = sum((c.height // self.buf.stride) * (c.width // self.buf.stride) for c in self.seq.rig.cameras)
+        return float(linked.sum()) / max(area, 1)
+
+    def _health(self, k: int, rounds: list) -> str | None:
+        """Why the solve that added keyframe ``k`` is a tracking failure, or None: no MCBA
+        step accepted in any round, too few confident correspondences, or a final robust cost
+        per unit of correspondence weight far above the run's usual level."""
+        th = self.cfg.tracking
+        frac = self._confident_fraction(k)
+        stats, weight = rounds[-1]
+        level = stats.cost[-1] / max(weight, 1e-9) if stats.cost else float("nan")
+        usual = float(np.median(self._residual_levels)) if len(self._residual_levels) >= 3 else None
+        self.health.append({"keyframe": k, "frame": int(self.buf.frame_index[k]), "confident": round(frac, 4), "residual": float(level), "accepted": int(sum(st.accepted for st, _ in rounds))})
+        if all(st.accepted == 0 for st, _ in rounds) and any(st.cost for st, _ in rounds):
+            return "no MCBA step accepted"
+        if frac < th.min_confident:
+            return f"only {100 * frac:.1f} % of its pixels have a confident correspondence (tracking.min_confident {100 * th.min_confident:g} %)"
+        if usual is not None and np.isfinite(level) and level > th.max_residual_ratio * usual:
+            return f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
+        if np.isfinite(level):
+            self._residual_levels.append(level)
+        return None
 
     def _follow_depths(self, keyframes) -> None:
         """Eq. 13 per pixel, and fresh mapping targets, for estimated depth: the Gaussians of a
@@ -223,8 +270,34 @@ class SLAM:
             window = sliding_window(len(buf), tc.window)
             self.graph.update_window(window, cross_view=self.overlap is not None)
             self._link_newest(k)
-            self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :]))
+            why = self._health(k, self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :])))
+            if why is not None:
+                self._recover(k, window, T_init, disp, why)
         return k
+
+    def _recover(self, k: int, window, T_init: np.ndarray, disp0: np.ndarray, why: str) -> None:
+        """A tracking failure at keyframe ``k``: one warning line, then re-initialize it from
+        the constant-velocity prediction (pose ``T_init``, start depth ``disp0``), drop its
+        correspondences and match them again from that prediction (guided by the older
+        keyframes' solved depth, plain DIS where the prediction cannot guide), and solve
+        again. If that fails too, ``k`` keeps the prediction."""
+        from ..data.sequence import warn
+
+        buf = self.buf
+        frame = buf.frame_index[k]
+        self.failures.append(frame)
+        buf.set_poses(T_init[None], start=k)
+        buf.disp[k].assign(np.asarray(disp0, dtype=np.float32))
+        own = np.array([e for e in self.graph.edges if (e[0] == k or e[2] == k) and not (e[0] == e[2])], np.int32).reshape(-1, 5)
+        self.graph.forget(own)
+        self.graph.add(own[:, :5])
+        self.graph.compute(self.guided_or_raw, self.graph.missing())
+        second = self._health(k, self._solve(window))
+        if second is None:
+            warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); recovered from the constant-velocity prediction")
+            return
+        buf.set_poses(T_init[None], start=k)
+        warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}; again after re-matching: {second}); keyframe {k} keeps the constant-velocity prediction")
 
     def _link_newest(self, k: int) -> None:
         """A new keyframe whose views overlap no one else's by the graph's measure (a fast
@@ -355,7 +428,7 @@ class SLAM:
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             **{f"targets_cam{c}": np.array([self.buf.targets[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "failures": self.failures, "health": self.health, "residual_levels": self._residual_levels})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -402,6 +475,7 @@ class SLAM:
                 depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
             self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
             self.seconds = meta["seconds"]
+            self.failures, self.health, self._residual_levels = meta["failures"], meta["health"], meta["residual_levels"]
             kf_frames = [int(v) for v in a["kf_frames"]]
         except KeyError as e:
             raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None
