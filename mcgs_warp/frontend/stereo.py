@@ -58,7 +58,8 @@ def grey(image: np.ndarray, factor: int) -> np.ndarray:
 @dataclass
 class StereoConfig:
     scale: int = 2  # sweep at 1/scale resolution
-    near: float = 0.3  # m
+    near: float = 0.3  # m: nearest hypothesis, or nearer than that where the pair's disparity there would exceed max_disparity
+    max_disparity: float = 0.5  # fraction of the image width: the nearest hypothesis moves out to the depth with this disparity (a wide baseline spends no planes on depths no camera pair can see; KITTI: 0.62 m)
     far: float = 100.0  # m
     planes: int = 192  # at most this many inverse-depth hypotheses
     plane_px: float = 0.5  # epipolar motion between neighbouring hypotheses, px (sweep resolution)
@@ -111,13 +112,21 @@ class RigStereo:
             self._rates[(a, b)] = self.parallax_rate(a, b, T_b_a)
         return self._rates[(a, b)]
 
-    def hypotheses(self, baseline: float, focal: float) -> np.ndarray:
+    def near(self, baseline: float, focal: float, width: int) -> float:
+        """Nearest hypothesis (m) of a pair: ``cfg.near``, or the depth whose disparity is
+        ``max_disparity`` of the image width if that is farther (sweep-resolution px)."""
+        return max(self.cfg.near, focal * baseline / max(self.cfg.max_disparity * width, 1e-6))
+
+    def hypotheses(self, baseline: float, focal: float, width: int) -> np.ndarray:
+        """Inverse-depth hypotheses of a pair (``baseline`` m, ``focal`` and ``width`` in
+        sweep-resolution px): ``plane_px`` of epipolar motion apart, at most ``planes``."""
         from ..kernels.stereo import inverse_depth_hypotheses
 
         cfg = self.cfg
+        near = self.near(baseline, focal, width)
         step = cfg.plane_px / max(focal * baseline, 1e-6)  # inverse depth per plane_px of epipolar motion
-        n = int(np.clip(np.ceil((1.0 / cfg.near - 1.0 / cfg.far) / step), 8, cfg.planes))
-        return inverse_depth_hypotheses(cfg.near, cfg.far, n)
+        n = int(np.clip(np.ceil((1.0 / near - 1.0 / cfg.far) / step), 8, cfg.planes))
+        return inverse_depth_hypotheses(near, cfg.far, n)
 
     def pair_sweeps(self, key, images) -> dict:
         """``{(a, b): SweepResult}`` of every overlapping pair (a swept against b), left-right
@@ -131,7 +140,7 @@ class RigStereo:
         out = {}
         for a, b in self.pairs:
             T_b_a = np.linalg.inv(rig.cameras[b].T_b_c) @ rig.cameras[a].T_b_c
-            rho = self.hypotheses(float(np.linalg.norm(T_b_a[:3, 3])), self.specs[a].intrinsics[0])
+            rho = self.hypotheses(float(np.linalg.norm(T_b_a[:3, 3])), self.specs[a].intrinsics[0], self.specs[a].width)
             out[(a, b)] = sweep(greys[a], self.rays[a], [greys[b]], [self.cams[b]], T_b_a[None], rho, cfg.radius, cfg.min_std, 1, cfg.max_cost, cfg.max_ratio, device=self.device)
         for a, b in self.pairs:
             T_b_a = np.linalg.inv(rig.cameras[b].T_b_c) @ rig.cameras[a].T_b_c
