@@ -59,6 +59,7 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
     dropped = sum(changed for changed, _ in filtered) / sum(n for _, n in filtered)
     assert 0.01 < dropped < 0.5, dropped
     assert m["depth_source"] == "stereo" and m["jdsa"] is True and m["correspondences"] == "estimated"
+    assert m["tracking_failures"] == 0 and m["confident_fraction"]["min"] > 0.2, m  # no false alarm on a healthy run
     assert m["prior_jdsa_l1_m"] is not None and m["prior_l1_m"] is not None  # the stereo prior is inexact too
     assert abs(m["sim3_scale"] - 1) < 0.02, m["sim3_scale"]
     assert m["ate_se3_rmse_m"] < 0.01 * m["path_length_m"], m  # SE(3): a metric claim

@@ -49,6 +49,7 @@ def test_run_writes_every_output(run_dir):
     assert metrics["ate_se3_rmse_m"] < 0.003 and abs(metrics["sim3_scale"] - 1) < 0.01, metrics
     assert metrics["psnr_db"] > 27 and metrics["depth_l1_m"] < 0.2, metrics
     assert isinstance(metrics["loop_edges"], int)  # loop detection itself: tests/ba/test_graph.py
+    assert metrics["tracking_failures"] == 0 and metrics["metric_scale"] is True
     assert metrics["prior_l1_m"] is None and metrics["prior_jdsa_l1_m"] is None  # exact depth is no prior to rescale
     traj = read_tum(run / "trajectory.txt")
     assert len(traj) == 6
