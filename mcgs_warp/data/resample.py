@@ -48,7 +48,7 @@ class Resampled(Sequence):
         self.rig = Rig([resampled_camera(c, max(1, round(c.width * scale)), max(1, round(c.height * scale))) for c in seq.rig.cameras])
         self.timestamps, self.groundtruth, self.name = seq.timestamps, seq.groundtruth, seq.name
         self.depth_exact = seq.depth_exact
-        self.gravity = getattr(seq, "gravity", None)
+        self.gravity = seq.gravity
 
     def _colour(self, images):
         import cv2
@@ -70,11 +70,6 @@ class Resampled(Sequence):
     def gt_depths(self, k: int) -> list | None:
         d = self.seq.gt_depths(k)
         return None if d is None else self._depth(d)
-
-    def __getattr__(self, name):  # reader-specific extras (the oracle's exact depth lookups, paths)
-        if name == "seq":
-            raise AttributeError(name)
-        return getattr(self.seq, name)
 
 
 def at_processing_resolution(seq: Sequence, max_width: int) -> Sequence:

@@ -52,21 +52,16 @@ def view_plane(xyz, gravity=None) -> np.ndarray:
     the motion's principal plane (its two largest principal axes). The first axis is the
     one the motion spreads along most; the second completes a right-handed view looking
     against gravity (down from above), or along the least principal axis."""
-    xyz = np.asarray(xyz, float)
-    centred = xyz - xyz.mean(0)
+    centred = np.asarray(xyz, float) - np.mean(xyz, axis=0)
     if gravity is not None and np.linalg.norm(gravity) > 0:
         up = -np.asarray(gravity, float) / np.linalg.norm(gravity)
-        flat = centred - np.outer(centred @ up, up)
-        _, _, vt = np.linalg.svd(flat, full_matrices=True) if len(xyz) > 1 else (None, None, np.eye(3))
-        a = vt[0] - (vt[0] @ up) * up
-        if np.linalg.norm(a) < 1e-9:  # no horizontal motion: any horizontal axis
-            a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        flat = centred - np.outer(centred @ up, up)  # the motion seen from above
+        a = np.linalg.svd(flat, full_matrices=True)[2][0] if np.abs(flat).max() > 0 else np.cross(up, np.eye(3)[np.argmin(np.abs(up))])
     else:
-        _, _, vt = np.linalg.svd(centred, full_matrices=True) if len(xyz) > 1 else (None, None, np.eye(3))
+        _, _, vt = np.linalg.svd(centred, full_matrices=True)
         a, up = vt[0], vt[2]
     a = a / np.linalg.norm(a)
-    b = np.cross(up, a)
-    return np.stack([a, b / np.linalg.norm(b)], 1)
+    return np.stack([a, np.cross(up, a)], 1)
 
 
 def trajectory_figure(est_xyz, gt_xyz=None, timestamps=None, title: str | None = None, gravity=None, ate_label: str = "ATE") -> Figure:

@@ -145,13 +145,13 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "n_frames": len(seq),
         "seconds_total": float(seconds_total),
         "tracking_failures": len(slam.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)
-        "tracking_failure_frames": [int(f) for f in slam.failures],
+        "tracking_failure_frames": slam.failures,
         "confident_fraction": _quantiles([h["confident"] for h in slam.health]),  # per keyframe solve: fraction of its grid pixels with a confident correspondence (min, median)
+        "metric_scale": slam.metric_scale,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
     gt_xyz, times = None, traj.timestamps
     aligned, label = traj.positions, "ATE"
-    metrics["metric_scale"] = slam.metric_scale
     if seq.groundtruth is not None:
         tm, aligned, gt_xyz, times = evaluate(traj, seq.groundtruth, return_timestamps=True)
         se3, se3_aligned, _ = evaluate(traj, seq.groundtruth, with_scale=False)
@@ -160,7 +160,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")
     with atomic_write(out / "metrics.json") as f:
         json.dump(metrics, f, indent=2)
-    plot_trajectory(out / "plots" / "trajectory.png", aligned, gt_xyz, times, gravity=getattr(seq, "gravity", None), ate_label=label)
+    plot_trajectory(out / "plots" / "trajectory.png", aligned, gt_xyz, times, gravity=seq.gravity, ate_label=label)
     if result.mapping_curve:
         plot_mapping(out / "plots" / "mapping.png", *(np.array(v, float) for v in zip(*result.mapping_curve)))
     import yaml

@@ -110,9 +110,7 @@ class SLAM:
         self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
-        self.failures: list = []  # frame index of every tracking failure (warning, recovery)
-        self.health: list = []  # per keyframe solve: confident fraction, residual level, accepted steps
-        self._residual_levels: list = []  # healthy solves' robust cost per unit weight
+        self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
 
     @property
     def exact_depth(self) -> bool:
@@ -129,6 +127,11 @@ class SLAM:
         Without them only the prior carries the metric scale, and JDSA holds its mean
         (:func:`~mcgs_warp.ba.jdsa.update_scales`)."""
         return bool(camera_pairs(self.overlap, len(self.seq.rig), self.graph.cfg.min_camera_overlap))
+
+    @property
+    def failures(self) -> list:
+        """Frame index of every keyframe whose solve was a tracking failure (once each)."""
+        return sorted({h["frame"] for h in self.health if h["failure"]})
 
     @property
     def metric_scale(self) -> bool:
@@ -212,17 +215,17 @@ class SLAM:
         frac = self._confident_fraction(k)
         stats, weight = rounds[-1]
         level = stats.cost[-1] / max(weight, 1e-9) if stats.cost else float("nan")
-        usual = float(np.median(self._residual_levels)) if len(self._residual_levels) >= 3 else None
-        self.health.append({"keyframe": k, "frame": int(self.buf.frame_index[k]), "confident": round(frac, 4), "residual": float(level), "accepted": int(sum(st.accepted for st, _ in rounds))})
+        healthy = [h["residual"] for h in self.health if not h["failure"] and np.isfinite(h["residual"])]
+        usual = float(np.median(healthy)) if len(healthy) >= 3 else None
+        why = None
         if all(st.accepted == 0 for st, _ in rounds) and any(st.cost for st, _ in rounds):
-            return "no MCBA step accepted"
-        if frac < th.min_confident:
-            return f"only {100 * frac:.1f} % of its pixels have a confident correspondence (tracking.min_confident {100 * th.min_confident:g} %)"
-        if usual is not None and np.isfinite(level) and level > th.max_residual_ratio * usual:
-            return f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
-        if np.isfinite(level):
-            self._residual_levels.append(level)
-        return None
+            why = "no MCBA step accepted"
+        elif frac < th.min_confident:
+            why = f"only {100 * frac:.1f} % of its pixels have a confident correspondence (tracking.min_confident {100 * th.min_confident:g} %)"
+        elif usual is not None and np.isfinite(level) and level > th.max_residual_ratio * usual:
+            why = f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
+        self.health.append({"keyframe": k, "frame": int(self.buf.frame_index[k]), "confident": round(frac, 4), "residual": float(level), "accepted": int(sum(st.accepted for st, _ in rounds)), "failure": why})
+        return why
 
     def _follow_depths(self, keyframes) -> None:
         """Eq. 13 per pixel, and fresh mapping targets, for estimated depth: the Gaussians of a
@@ -285,12 +288,11 @@ class SLAM:
 
         buf = self.buf
         frame = buf.frame_index[k]
-        self.failures.append(frame)
         buf.set_poses(T_init[None], start=k)
         buf.disp[k].assign(np.asarray(disp0, dtype=np.float32))
-        own = np.array([e for e in self.graph.edges if (e[0] == k or e[2] == k) and not (e[0] == e[2])], np.int32).reshape(-1, 5)
+        own = np.array([e for e in self.graph.edges if (e[0] == k) != (e[2] == k)], np.int32).reshape(-1, 5)  # k's edges to other keyframes
         self.graph.forget(own)
-        self.graph.add(own[:, :5])
+        self.graph.add(own)
         self.graph.compute(self.guided_or_raw, self.graph.missing())
         second = self._health(k, self._solve(window))
         if second is None:
@@ -428,7 +430,7 @@ class SLAM:
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             **{f"targets_cam{c}": np.array([self.buf.targets[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
             mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "failures": self.failures, "health": self.health, "residual_levels": self._residual_levels})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -475,7 +477,7 @@ class SLAM:
                 depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
             self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
             self.seconds = meta["seconds"]
-            self.failures, self.health, self._residual_levels = meta["failures"], meta["health"], meta["residual_levels"]
+            self.health = meta["health"]
             kf_frames = [int(v) for v in a["kf_frames"]]
         except KeyError as e:
             raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None

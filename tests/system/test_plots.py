@@ -112,4 +112,4 @@ def test_top_view_is_the_plane_of_the_motion():
     fig = trajectory_figure(xyz + 0.01, xyz, t, gravity=[0.0, 1.0, 0.0], ate_label="SE(3) ATE")
     x, y = fig.axes[0].lines[0].get_data()  # the ground-truth line in view coordinates
     assert np.ptp(x) > 10 and np.ptp(y) > 5  # the turn, not a side view (the old x-y plane spans 0.6 m in y)
-    assert fig._suptitle.get_text().startswith("SE(3) ATE 1.73 cm")
+    assert fig.get_suptitle().startswith("SE(3) ATE 1.73 cm")
