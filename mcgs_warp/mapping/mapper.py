@@ -31,6 +31,7 @@ from ..buffer import KeyframeBuffer
 from ..eval.metrics import psnr
 from ..geometry import adjoint
 from ..kernels import Views, render, render_backward
+from ..kernels import background as bg
 from ..kernels.se3 import mat66
 from .gaussian_map import DensifyReport, GaussianMap
 from .losses import MappingLoss
@@ -50,6 +51,8 @@ class MappingConfig:
     lr_colors: float = 5e-3
     lr_exposure: float = 1e-3
     lr_pose: float = 2e-4  # rad and m per step (Adam)
+    lr_background: float = 0.02  # per step: the background's spherical-harmonic coefficients (colour units)
+    background: bool = True  # light the splats let through comes from a background at infinity (sky), colour by world direction (kernels/background.py); False: black
     lambda_ssim: float = 0.2
     lambda_depth: float = 1.0  # per m (0.2 before; seed 0 RGB only depth L1 0.119 -> 0.106 m, exact 0.045 -> 0.031 m and 30.16 -> 30.50 dB; held-out seed 1 RGB only 0.114 -> 0.100 m)
     lambda_scale: float = 1.0  # per m (isotropy, eq. 11)
@@ -92,6 +95,7 @@ class Mapper:
         self.fixed_poses: set[int] = {0}
         self.adam = self._new_adam()
         self.loss = MappingLoss(self.cams, dev, self.cfg.target_cache, rays=buffer.full_rays)
+        self.background = wp.zeros(bg.N_COEFFS, dtype=wp.vec3, device=dev)  # RGB per harmonic (kernels/background.py)
         # xi_c = Ad(T_c_b) xi_b: camera-pose gradients to the body, transposed adjoints per camera
         adj = np.stack([adjoint(np.linalg.inv(spec.T_b_c)).T for spec in buffer.rig.cameras]).astype(np.float32)
         self._adjoints_T = wp.array(adj, dtype=mat66, device=dev)
@@ -118,6 +122,18 @@ class Mapper:
         viewmats = wp.empty(len(self.cams), dtype=wp.mat44, device=dev)
         wp.launch(keyframe_viewmats_kernel, dim=len(self.cams), inputs=[self.buf.poses, self.buf.T_b_c, int(k)], outputs=[viewmats], device=dev)
         return Views(self.loss.cameras, viewmats, self.loss.W, self.loss.H)
+
+    def colour(self, out, views: Views) -> wp.array:
+        """The rendered colour [C,H,W] of ``out`` (a :func:`render` of ``views``, whose
+        cameras are the rig's at the buffer's size) with the background behind the splats."""
+        if not self.cfg.background:
+            return out.color
+        return bg.composite(out.color, out.alpha, self.loss.rays, views.viewmats, views.cameras, self.background)
+
+    def render(self, views: Views):
+        """``(colour, render)``: :func:`render` of ``views`` and its colour with the background."""
+        out = render(self.map.gaussians, views)
+        return self.colour(out, views), out
 
     def add_keyframe(self, k: int, depths) -> int:
         """Register keyframe ``k`` of the buffer with full-resolution depth targets
@@ -151,10 +167,10 @@ class Mapper:
             k = keys[self.rng.integers(len(keys))]
         g = self.map.gaussians
         views = self.views(k)
-        out = render(g, views)
+        colour, out = self.render(views)
         t1 = time.perf_counter()
         targets = self.loss.targets(k, buf.images[k], buf.targets[k])
-        res = self.loss(out.color, out.depth, targets, buf.exposure[k], cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal)
+        res = self.loss(colour, out.depth, targets, buf.exposure[k], cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal)
         t2 = time.perf_counter()
         params = {"means": g.means, "log_scales": g.log_scales, "quats": g.quats, "opacity_logits": g.opacity_logits, "colors": g.colors}
         train_map = any(self.adam.lrs.get(name, 0) > 0 for name in params)
@@ -162,12 +178,15 @@ class Mapper:
         grads = None
         self._nonfinite.zero_()
         self._scale_loss.zero_()
+        grad_background = None
         if train_map or step_pose:
-            grads = render_backward(g, views, out, grad_color=res.grad_color, grad_depth=res.grad_depth)
+            grad_alpha = None
+            if cfg.background:
+                grad_alpha, grad_background = bg.composite_backward(out.alpha, self.loss.rays, views.viewmats, views.cameras, self.background, res.grad_color)
+            grads = render_backward(g, views, out, grad_color=res.grad_color, grad_depth=res.grad_depth, grad_alpha=grad_alpha)
             if cfg.lambda_scale > 0 and len(self.map):
                 wp.launch(isotropy_loss_kernel, dim=len(self.map), inputs=[g.log_scales, cfg.lambda_scale / len(self.map)], outputs=[self._scale_loss, grads.log_scales], device=dev)
-            for name in ("means", "quats", "log_scales", "opacity_logits", "colors", "pose"):
-                values = flat(getattr(grads, name))
+            for values in [flat(getattr(grads, name)) for name in ("means", "quats", "log_scales", "opacity_logits", "colors", "pose")] + ([flat(grad_background)] if grad_background is not None else []):
                 if values.shape[0]:
                     wp.launch(count_nonfinite_kernel, dim=values.shape[0], inputs=[values], outputs=[self._nonfinite], device=dev)
         total, psnrs = res.values()
@@ -185,6 +204,8 @@ class Mapper:
         if train_map:
             self.adam.step(params, {name: getattr(grads, name) for name in params})
             self.map.accumulate_view_gradients(grads.mean2d, out.projection.visible, views.n)
+            if grad_background is not None:
+                self.adam.step_group("background", self.background, grad_background, cfg.lr_background)
         if self.optimize_exposure:
             self.adam.step_group(f"exposure{k}", buf.exposure[k], res.grad_exposure, cfg.lr_exposure)
         if step_pose:
@@ -223,6 +244,7 @@ class Mapper:
         out = {f"map.{k}": v for k, v in self.map.to_numpy().items()}
         out.update({f"adam.{k}": v for k, v in self.adam.state_arrays().items()})
         out["grad_accum"], out["grad_count"] = self.map.statistics()
+        out["background"] = self.background.numpy().copy()
         out["history"] = np.array([(r.loss, r.psnr, r.keyframe) for r in self.history], np.float64).reshape(-1, 3)
         out["json"] = np.array(json.dumps({"iteration": self.iteration, "rng": self.rng.bit_generator.state, "rejected": self.rejected_steps, "registered": sorted(self.buf.targets)}))
         return out
@@ -235,6 +257,7 @@ class Mapper:
         self.map.set_numpy({k[4:]: a[k] for k in a if k.startswith("map.")})
         self.map.set_statistics(a["grad_accum"], a["grad_count"])
         self.adam.load_state_arrays({k[5:]: a[k] for k in a if k.startswith("adam.")}, self.buf.device)
+        self.background.assign(a["background"])
         self.history = [StepResult(float(l_), float(p_), int(k_)) for l_, p_, k_ in a["history"]]
         meta = json.loads(str(a["json"]))
         self.iteration = meta["iteration"]
@@ -266,8 +289,7 @@ class Mapper:
         """Mean PSNR (dB) of renders against images: ``views`` is [(T_w_b, [image per camera])]."""
         values = []
         for T_w_b, imgs in views:
-            out = render(self.map.gaussians, Views.create(self.cams, self.buf.rig.camera_poses(T_w_b), self.buf.device))
-            col = out.color.numpy()
+            col = self.render(Views.create(self.cams, self.buf.rig.camera_poses(T_w_b), self.buf.device))[0].numpy()
             for c, spec in enumerate(self.buf.rig.cameras):
                 values.append(psnr(col[c, : spec.height, : spec.width], imgs[c]))
         return float(np.mean(values))

@@ -33,7 +33,7 @@ from ..eval.trajectory import evaluate
 from ..io import atomic_write, write_image
 from ..io.ply import write_ply
 from ..io.usd import write_usd
-from ..kernels import Views, render
+from ..kernels import Views
 from ..rig import save_rig
 
 
@@ -52,8 +52,8 @@ def keyframe_views(slam):
     poses = buf.get_poses()
     exposure = m.buf.exposure.numpy()  # [capacity, C, 2] (log a, b)
     for k in range(len(buf)):
-        out = render(m.map.gaussians, Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
-        col, dep = out.color.numpy(), out.depth.numpy()
+        colour, out = m.render(Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
+        col, dep = colour.numpy(), out.depth.numpy()
         for c, spec in enumerate(buf.rig.cameras):
             a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
             yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]

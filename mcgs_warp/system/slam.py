@@ -42,9 +42,9 @@ from .config import RunConfig
 GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
 log = logging.getLogger("mcgs_warp.slam")
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
-#: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health), so that
+#: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 3
+CHECKPOINT_FORMAT = 4
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
@@ -98,7 +98,7 @@ class SLAM:
         self.flow = DISFlow() if self.exact_depth else DISFlow(finest_scale=0, patch_size=4, smoothness=5.0)
         self.guided = GuidedDIS(self.flow)
         self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
-        self.selector = KeyframeSelector(DISFlow(), threshold=tc.keyframe_flow_px)  # a mean flow: half resolution is enough
+        self.selector = KeyframeSelector(DISFlow(), sequence.rig.cameras, threshold=tc.keyframe_flow)  # a mean flow: half resolution is enough
         # Cross-view edges (eq. 8) constrain only depth; exact sensor depth already fixes it,
         # so with it they cost their sweeps and change nothing (demo: 4.3 vs 4.5 mm SE(3) ATE).
         self.overlap = rig_overlap if tc.cross_view and not self.exact_depth else None

@@ -17,12 +17,17 @@ def mapping_seq(tmp_path_factory):
 
 
 def make_mapper(seq, config=None, params=None):
+    """A mapper of ``seq``'s KEYFRAMES at their true poses: Gaussians inserted from the true
+    depth, or ``params`` (a map's arrays, or a Mapper whose map and background it copies)."""
     from problems import Problem
 
     from mcgs_warp.mapping.mapper import Mapper
 
     P = Problem(seq, KEYFRAMES, cross_view=False)
     m = Mapper(P.buf, config=config)
+    if isinstance(params, Mapper):
+        m.background.assign(params.background.numpy())
+        params = params.map.to_numpy()
     if params is None:
         for k, f in enumerate(KEYFRAMES):
             m.add_keyframe(k, seq[f].depths)

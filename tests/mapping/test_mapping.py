@@ -124,7 +124,7 @@ def test_refinement_densifies_in_its_first_half_only(fitted, mapping_seq):
     not densify at 100 (its 5th step), a 10-iteration one does (its 5th step is in its first half)."""
     counts = {}
     for n in (8, 10):
-        m = make_mapper(mapping_seq, MappingConfig(lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0), fitted.map.to_numpy())
+        m = make_mapper(mapping_seq, MappingConfig(lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0), fitted)
         m.iteration = 95
         calls = []
         m.densify_and_prune = lambda: calls.append(m.iteration)
@@ -136,7 +136,7 @@ def test_refinement_densifies_in_its_first_half_only(fitted, mapping_seq):
 
 def test_exposure_refinement_recovers_gain_and_bias(fitted, mapping_seq):
     cfg = MappingConfig(lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0, lr_exposure=0.015, densify_every=0, lambda_ssim=0.0)
-    m = make_mapper(mapping_seq, cfg, fitted.map.to_numpy())
+    m = make_mapper(mapping_seq, cfg, fitted)
     rng = np.random.default_rng(0)
     truth = np.stack([rng.uniform(0.8, 1.2, (4, 3)), rng.uniform(-0.05, 0.05, (4, 3))], -1)
     for k in range(4):
@@ -149,7 +149,7 @@ def test_exposure_refinement_recovers_gain_and_bias(fitted, mapping_seq):
 
 def test_pose_refinement_through_the_renderer_reduces_error(fitted, mapping_seq):
     cfg = MappingConfig(lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0, lr_pose=1e-3, densify_every=0)
-    m = make_mapper(mapping_seq, cfg, fitted.map.to_numpy())
+    m = make_mapper(mapping_seq, cfg, fitted)
     true = m.buf.get_poses()
     bad = true.copy()
     bad[2] = true[2] @ se3_exp([0.02, -0.015, 0.01, 0.01, -0.012, 0.008])
@@ -169,7 +169,7 @@ def test_pose_refinement_through_the_renderer_reduces_error(fitted, mapping_seq)
 
 
 def test_densify_and_prune_counts(fitted, mapping_seq):
-    m = make_mapper(mapping_seq, MappingConfig(densify_every=0, split_scale=0.05), fitted.map.to_numpy())
+    m = make_mapper(mapping_seq, MappingConfig(densify_every=0, split_scale=0.05), fitted)
     m.step(0)  # creates optimizer state
     d = m.map.to_numpy()
     n = len(d["means"])
@@ -255,3 +255,44 @@ def test_follow_depth_moves_each_gaussian_along_its_camera_ray(mapping_seq):
     np.testing.assert_allclose(d["means"][n : n + 5], X[:5] + 1.0, atol=1e-6)
     np.testing.assert_allclose(d["means"][-1], behind, atol=1e-6)
 
+
+
+def test_background_learns_a_sky_that_no_gaussian_covers(mapping_seq):
+    """The top quarter of every image is replaced by a sky at infinity (colour by world
+    direction, no depth): with the background the mapper renders it (and a direction no
+    keyframe saw in between is interpolated); without it that region stays black."""
+    def sky(d):
+        return np.clip(0.55 + 0.25 * d[..., 1:2] + 0.15 * d[..., 0:1] * d[..., 2:3] + np.array([0.0, 0.05, 0.1]), 0, 1)
+
+    psnrs = {}
+    for background in (True, False):
+        from problems import Problem
+
+        from mcgs_warp.mapping.mapper import Mapper
+
+        m = Mapper(Problem(mapping_seq, KEYFRAMES, cross_view=False).buf, config=MappingConfig(background=background, densify_every=0))
+        poses = m.buf.get_poses()
+        masks = []
+        for k, f in enumerate(KEYFRAMES):
+            images, depths = [], []
+            for c, spec in enumerate(m.buf.rig.cameras):
+                top = np.zeros((spec.height, spec.width), bool)
+                top[: spec.height // 4] = True
+                R = (poses[k] @ spec.T_b_c)[:3, :3]
+                d = m.full_rays(c) @ R.T
+                d /= np.linalg.norm(d, axis=-1, keepdims=True)
+                images.append(np.where(top[..., None], sky(d), m.buf.images[k][c]).astype(np.float32))
+                depths.append(np.where(top, 0.0, mapping_seq[f].depths[c]).astype(np.float32))
+                masks.append(top)
+            m.buf.images[k] = images
+            m.add_keyframe(k, depths)
+        m.optimize(120)
+        errs = []
+        for k in range(len(KEYFRAMES)):
+            colour, _ = m.render(m.views(k))
+            col = colour.numpy()
+            for c, spec in enumerate(m.buf.rig.cameras):
+                top = masks[k * len(m.buf.rig.cameras) + c]
+                errs.append(((col[c, : spec.height, : spec.width] - m.buf.images[k][c]) ** 2)[top].mean())
+        psnrs[background] = -10 * np.log10(np.mean(errs))
+    assert psnrs[True] > 22.0 and psnrs[True] > psnrs[False] + 12.0, psnrs  # 24.4 vs 6.5 dB
