@@ -1,36 +1,49 @@
 """Keyframe selection by mean optical-flow magnitude (paper §III-A1).
 
 A frame becomes a keyframe when the mean flow magnitude from the last keyframe,
-averaged over the rig's cameras, exceeds ``threshold`` pixels (measured on images
-downscaled by ``scale`` for speed, reported in full-resolution pixels).
+averaged over the rig's cameras, exceeds ``threshold`` radians of view angle: each
+camera's mean flow in its own pixels (measured on images downscaled by ``scale`` for
+speed) divided by its pixels per radian (:func:`pixels_per_radian`). An angle, not a
+pixel count, so one threshold means the same motion at any resolution and field of view
+(the built-in 320x240 rig's 10 px at a 180 px focal length is KITTI's 20 px at 640 px wide).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-#: Default keyframe threshold (full-resolution px of mean flow), the tuned value the system
-#: runs with (``mcgs_warp.system.config.TrackingConfig.keyframe_flow_px`` takes it from here).
-THRESHOLD_PX = 10.0
+#: Default keyframe threshold (rad of mean flow), the tuned value the system runs with
+#: (``mcgs_warp.system.config.TrackingConfig.keyframe_flow`` takes it from here): the 10 px
+#: tuned on the built-in rig (180 px focal length) until 2026-12-01.
+THRESHOLD_RAD = 0.055
+
+
+def pixels_per_radian(spec) -> float:
+    """Pixels per radian of view angle at the image centre of camera ``spec``: the focal
+    length fx (pinhole, fisheye), width / 2 pi (equirectangular)."""
+    if spec.model == "equirectangular":
+        return spec.width / (2 * np.pi)
+    return float(spec.intrinsics[0])
 
 
 class KeyframeSelector:
-    def __init__(self, flow, threshold: float = THRESHOLD_PX, scale: float = 0.5):
+    def __init__(self, flow, cameras, threshold: float = THRESHOLD_RAD, scale: float = 0.5):
         self.flow = flow  # an object with .flow(image_a, image_b) -> (flow [H,W,2], confidence [H,W])
+        self.focal = [pixels_per_radian(spec) for spec in cameras]  # the rig's CameraSpecs, in image order
         self.threshold = threshold
         self.scale = scale
 
     def mean_flow(self, images_a, images_b) -> float:
-        """Mean flow magnitude (full-resolution px) from ``images_a`` to ``images_b`` over all cameras."""
+        """Mean flow magnitude (rad of view angle) from ``images_a`` to ``images_b`` over all cameras."""
         import cv2
 
         mags = []
-        for a, b in zip(images_a, images_b):
+        for a, b, focal in zip(images_a, images_b, self.focal):
             if self.scale != 1.0:
                 a = cv2.resize(a, None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
                 b = cv2.resize(b, None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
             f, _ = self.flow.flow(a, b)
-            mags.append(float(np.linalg.norm(f, axis=-1).mean()) / self.scale)
+            mags.append(float(np.linalg.norm(f, axis=-1).mean()) / self.scale / focal)
         return float(np.mean(mags))
 
     def is_keyframe(self, last_keyframe_images, images) -> tuple[bool, float]:

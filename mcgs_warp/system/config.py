@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..ba.mcba import MCBAConfig
 from ..errors import InputError
-from ..frontend.keyframes import THRESHOLD_PX
+from ..frontend.keyframes import THRESHOLD_RAD
 from ..mapping.mapper import MappingConfig
 
 
@@ -23,6 +23,19 @@ CHOICES = {
 }
 
 
+#: smallest allowed values where 0 (or 1) would fail or silently switch a stage off:
+#: (section, key) -> (minimum, strict: the value must exceed it, what the key needs)
+MINIMUMS = {
+    ("tracking", "stride"): (1, False, "the reduced grid keeps every stride-th pixel"),
+    ("tracking", "window"): (2, False, "MCBA needs the new keyframe and at least one other"),
+    ("tracking", "temporal_radius"): (1, False, "each view needs an edge to another keyframe"),
+    ("tracking", "mcba_iterations"): (1, False, "0 would never move a pose"),
+    ("tracking", "flow_rounds"): (1, False, "each keyframe needs one MCBA round"),
+    ("tracking", "huber_px"): (0.0, True, "0 would give every residual zero weight"),
+    ("mapping", "insert_stride"): (1, False, "new Gaussians every insert_stride-th pixel"),
+}
+
+
 @dataclass
 class TrackingConfig:
     depth: str = "auto"  # auto | sensor | stereo | none (see mcgs_warp.frontend.depth.choose_prior)
@@ -30,7 +43,7 @@ class TrackingConfig:
     max_width: int = 640  # px: images are resampled (intrinsics scaled) so the widest camera is at most this wide for tracking and mapping (0: native resolution)
     stride: int = 8  # px: inverse depth and flow live on every 8th pixel (the reduced grid)
     window: int = 8  # keyframes in the MCBA sliding window
-    keyframe_flow_px: float = THRESHOLD_PX  # full-resolution px: new keyframe when the mean flow since the last exceeds this
+    keyframe_flow: float = THRESHOLD_RAD  # rad: new keyframe when the mean flow since the last, in view angle (px / focal length), exceeds this (0.055: 10 px at a 180 px focal length, 20 px for KITTI at 640 px wide)
     temporal_radius: int = 2  # each view links to up to 2x this many overlapping views of the window (nearest first); the last radius+1 keyframes' edges are re-matched between MCBA rounds
     cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8); never with exact sensor depth, which already fixes the depth they measure
     mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
@@ -77,6 +90,13 @@ class RunConfig:
         return dataclasses.asdict(self)
 
 
+def _at_least(value, src, section, key, name):
+    low, strict, why = MINIMUMS.get((section, key), (0, False, ""))
+    if value < low or (strict and value <= low):
+        raise InputError(src, name, f"expected {'more than' if strict else 'at least'} {low} ({why}), got {value!r}")
+    return value
+
+
 def _fill(cls, data, src, prefix):
     if data is None:
         return cls()
@@ -99,11 +119,11 @@ def _fill(cls, data, src, prefix):
         elif isinstance(default, int):
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise InputError(src, name, f"expected a non-negative integer, got {value!r}")
-            kwargs[key] = value
+            kwargs[key] = _at_least(value, src, prefix, key, name)
         elif isinstance(default, float):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value or value < 0:
                 raise InputError(src, name, f"expected a non-negative number, got {value!r}")
-            kwargs[key] = float(value)
+            kwargs[key] = _at_least(float(value), src, prefix, key, name)
         elif isinstance(default, str):
             choices = CHOICES.get((prefix, key))
             if not isinstance(value, str) or (choices and value not in choices):

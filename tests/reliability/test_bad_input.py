@@ -72,6 +72,9 @@ def test_run_config_errors_and_camera_selection(tmp_path):
     cfg.write_text("mapping:\n  lr_means: -1\n")
     res = cli("run", "--data", root, "--out", tmp_path / "out", "--config", cfg)
     assert res.returncode == 2 and "mapping.lr_means: expected a non-negative number" in res.stderr
+    cfg.write_text("tracking:\n  stride: 0\n")  # was a ZeroDivisionError traceback
+    res = cli("run", "--data", root, "--out", tmp_path / "out", "--config", cfg)
+    assert res.returncode == 2 and "cfg.yaml: tracking.stride: expected at least 1" in res.stderr and "Traceback" not in res.stderr
     res = cli("run", "--data", root, "--out", tmp_path / "out", "--cameras", "0,3")
     assert res.returncode == 2 and "--cameras: camera index 3 out of range" in res.stderr
     res = cli("--debug", "run", "--data", tmp_path / "nowhere", "--out", tmp_path / "out")
@@ -106,3 +109,23 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
     with atomic_write(path) as f:
         f.write("new")
     assert path.read_text() == "new"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("tracking:\n  window: 0\n", "tracking.window: expected at least 2"),  # was an IndexError
+    ("tracking:\n  window: 1\n", "tracking.window: expected at least 2"),  # silently no tracking
+    ("tracking:\n  huber_px: 0\n", "tracking.huber_px: expected more than 0"),  # every residual weight 0
+    ("tracking:\n  mcba_iterations: 0\n", "tracking.mcba_iterations: expected at least 1"),
+    ("tracking:\n  temporal_radius: 0\n", "tracking.temporal_radius: expected at least 1"),
+    ("mapping:\n  insert_stride: 0\n", "mapping.insert_stride: expected at least 1"),
+])
+def test_run_config_rejects_values_that_switch_a_stage_off(tmp_path, text, message):
+    from mcgs_warp.errors import InputError
+    from mcgs_warp.system.config import load_run_config
+
+    path = tmp_path / "run.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        load_run_config(path)
+    path.write_text(text.replace(": 0\n", ": 2\n").replace(": 1\n", ": 2\n"))
+    load_run_config(path)  # the smallest sensible value passes
