@@ -48,6 +48,14 @@ class CameraSpec:
     T_b_c: np.ndarray = field(default_factory=lambda: np.eye(4))  # camera -> body, m
     time_offset: float = 0.0  # s
 
+    @property
+    def pixels_per_radian(self) -> float:
+        """Pixels per radian of view angle at the image centre: the focal length fx (pinhole,
+        fisheye), width / 2 pi (equirectangular). A pixel at range r spans about r / this (m)."""
+        if self.model == "equirectangular" or self.intrinsics is None:
+            return self.width / (2 * np.pi)
+        return float(self.intrinsics[0])
+
     def warp_camera(self):
         """The :class:`mcgs_warp.kernels.Camera` struct of this camera (made once per set of
         parameters: making one searches the distortion's valid radius; treat it as read-only)."""

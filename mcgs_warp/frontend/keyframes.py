@@ -3,7 +3,7 @@
 A frame becomes a keyframe when the mean flow magnitude from the last keyframe,
 averaged over the rig's cameras, exceeds ``threshold`` radians of view angle: each
 camera's mean flow in its own pixels (measured on images downscaled by ``scale`` for
-speed) divided by its pixels per radian (:func:`pixels_per_radian`). An angle, not a
+speed) divided by its pixels per radian (:attr:`~mcgs_warp.rig.CameraSpec.pixels_per_radian`). An angle, not a
 pixel count, so one threshold means the same motion at any resolution and field of view
 (the built-in 320x240 rig's 10 px at a 180 px focal length is KITTI's 20 px at 640 px wide).
 """
@@ -18,18 +18,10 @@ import numpy as np
 THRESHOLD_RAD = 0.055
 
 
-def pixels_per_radian(spec) -> float:
-    """Pixels per radian of view angle at the image centre of camera ``spec``: the focal
-    length fx (pinhole, fisheye), width / 2 pi (equirectangular)."""
-    if spec.model == "equirectangular":
-        return spec.width / (2 * np.pi)
-    return float(spec.intrinsics[0])
-
-
 class KeyframeSelector:
     def __init__(self, flow, cameras, threshold: float = THRESHOLD_RAD, scale: float = 0.5):
         self.flow = flow  # an object with .flow(image_a, image_b) -> (flow [H,W,2], confidence [H,W])
-        self.focal = [pixels_per_radian(spec) for spec in cameras]  # the rig's CameraSpecs, in image order
+        self.focal = [spec.pixels_per_radian for spec in cameras]  # the rig's CameraSpecs, in image order
         self.threshold = threshold
         self.scale = scale
 

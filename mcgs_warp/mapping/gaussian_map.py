@@ -1,9 +1,10 @@
 """The 3D Gaussian map: parameters on a Warp device plus an anchor keyframe per Gaussian.
 
 New Gaussians come from back-projected keyframe depth (every ``stride``-th pixel),
-coloured from the image, isotropic with a scale of half the mean distance to their 3
-nearest neighbours (SciPy ``cKDTree``; neighbouring splats then meet at about one
-sigma), unit rotation and opacity 0.9 (logit). Each
+coloured from the image, isotropic with a scale of half their footprint: the ``stride``
+pixels between samples at their range, ``0.5 stride r / f`` (``f`` the camera's pixels per
+radian), so neighbouring splats meet at about one sigma at any depth, resolution and field
+of view, whatever else the map holds there; unit rotation and opacity 0.9 (logit). Each
 Gaussian remembers the keyframe it was created from, so when tracking moves that
 keyframe its Gaussians move with it (paper eq. 12-13).
 
@@ -165,12 +166,11 @@ class GaussianMap:
     # ----------------------------------------------------------------------------------
     def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0) -> int:
         """Back-project every ``stride``-th pixel with depth of each camera (``mask[c]``
-        [H,W] bool limits to unobserved pixels) into new Gaussians anchored to ``anchor``."""
-        from scipy.spatial import cKDTree
-
+        [H,W] bool limits to unobserved pixels) into new Gaussians anchored to ``anchor``,
+        sized by their footprint (module docstring)."""
         from ..ba.graph import unproject_pixels
 
-        pts, cols = [], []
+        pts, cols, sizes = [], [], []
         for c, spec in enumerate(rig.cameras):
             d = depths[c]
             if d is None:
@@ -189,14 +189,12 @@ class GaussianMap:
             T = T_w_b @ spec.T_b_c
             pts.append(X_c[has_ray] @ T[:3, :3].T + T[:3, 3])
             cols.append(images[c][v[ok], u[ok]][has_ray])
+            sizes.append(stride * np.linalg.norm(X_c[has_ray], axis=1) / spec.pixels_per_radian)
         if not pts:
             return 0
         pts = np.concatenate(pts)
         cols = np.concatenate(cols)
-        existing = self.gaussians.means.numpy() if len(self) else np.zeros((0, 3))
-        tree = cKDTree(np.concatenate([existing, pts]))
-        dist, _ = tree.query(pts, k=4)
-        scale = np.clip(0.5 * dist[:, 1:].mean(1), 1e-4, MAX_INITIAL_SCALE)
+        scale = np.clip(0.5 * np.concatenate(sizes), 1e-4, MAX_INITIAL_SCALE)
         return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor)
 
     def anchors_device(self) -> wp.array:

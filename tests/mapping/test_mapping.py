@@ -296,3 +296,25 @@ def test_background_learns_a_sky_that_no_gaussian_covers(mapping_seq):
                 errs.append(((col[c, : spec.height, : spec.width] - m.buf.images[k][c]) ** 2)[top].mean())
         psnrs[background] = -10 * np.log10(np.mean(errs))
     assert psnrs[True] > 22.0 and psnrs[True] > psnrs[False] + 12.0, psnrs  # 24.4 vs 6.5 dB
+
+
+def test_new_gaussians_are_sized_by_their_pixel_footprint():
+    """Half the spacing of their samples at their range (0.5 stride r / f), at any depth and
+    resolution, and however many Gaussians the map already holds nearby."""
+    from mcgs_warp.data.resample import resampled_camera
+    from mcgs_warp.rig import CameraSpec, Rig
+
+    spec = CameraSpec(name="cam0", model="pinhole", width=64, height=48, intrinsics=(60.0, 60.0, 31.5, 23.5))
+    for cam, depth in ((spec, 2.0), (spec, 8.0), (resampled_camera(spec, 128, 96), 8.0)):
+        gmap = GaussianMap("cpu")
+        image = np.full((cam.height, cam.width, 3), 0.5, np.float32)
+        plane = np.full((cam.height, cam.width), depth, np.float32)
+        for _ in range(2):  # the second insert lands on the first one's Gaussians
+            before = len(gmap)
+            gmap.insert_from_depth(Rig([cam]), np.eye(4), [image], [plane], anchor=0, stride=4)
+            scales = np.exp(gmap.to_numpy()["log_scales"][before:])
+            means = gmap.to_numpy()["means"][before:]
+            want = 0.5 * 4 * np.linalg.norm(means, axis=1) / cam.intrinsics[0]
+            np.testing.assert_allclose(scales, np.repeat(want[:, None], 3, 1), rtol=1e-5)
+        # at the image centre, neighbouring samples on the plane are 4 px x depth / f apart
+        assert np.isclose(scales.min(), 0.5 * 4 * depth / cam.intrinsics[0], rtol=0.01)
