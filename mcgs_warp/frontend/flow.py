@@ -6,8 +6,8 @@ A :class:`FlowProvider` turns the edges of the keyframe buffer into targets
 paper uses a learned recurrent flow network (RFT); here:
 
 * :class:`DISFlow` — OpenCV's DIS optical flow, forward and backward, with the
-  forward-backward consistency as confidence; any learned flow can replace it by
-  implementing ``flow(image_a, image_b)``.
+  forward-backward consistency as confidence (0 on flat patches, :func:`textured`); any
+  learned flow can replace it by implementing ``flow(image_a, image_b)``.
 * :class:`GroundTruthFlow` — exact correspondences from depth and poses (synthetic
   data, tests), with occlusions removed by a depth test.
 """
@@ -27,6 +27,25 @@ class FlowProvider:
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
         """``targets`` [E,h,w,2] (reduced-grid pixels of view (j, cj)) and ``weights`` [E,h,w]."""
         raise NotImplementedError
+
+
+#: grey-level std (images in [0, 1]) of a 7x7 window below which a pixel's match carries no
+#: information: a flat patch (overexposed sky, a blank wall) matches itself anywhere nearby,
+#: and both the forward-backward check and the patch SAD pass it. Such grid pixels get weight 0
+#: (KITTI: the sky, 10-16 % of the grid; the built-in sequence: 1.4-2.4 %).
+FLAT_STD = 0.005
+
+
+def textured(image: np.ndarray, uv: np.ndarray, radius: int = 3) -> np.ndarray:
+    """bool [h,w]: whether the (2 radius + 1)^2 grey window of ``image`` [H,W,3] around each
+    integer pixel ``uv`` [h,w,2] has a std of at least :data:`FLAT_STD`."""
+    import cv2
+
+    g = cv2.cvtColor(np.asarray(image, np.float32), cv2.COLOR_RGB2GRAY)
+    k = (2 * radius + 1, 2 * radius + 1)
+    m, m2 = cv2.boxFilter(g, -1, k), cv2.boxFilter(g * g, -1, k)
+    std = np.sqrt(np.maximum(m2 - m * m, 0.0))
+    return std[uv[..., 1].astype(int), uv[..., 0].astype(int)] >= FLAT_STD
 
 
 def to_reduced(uv: np.ndarray, stride: int) -> np.ndarray:
@@ -111,6 +130,7 @@ class DISFlow(FlowProvider):
         return checked(fwd, bwd, image_a.shape), (checked(bwd, fwd, image_b.shape) if both else None)
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
+        """Targets and weights of ``edges``; flat grid pixels (:func:`textured`) get weight 0."""
         E = len(edges)
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
@@ -124,6 +144,9 @@ class DISFlow(FlowProvider):
             targets[e], weights[e] = grid_targets(buffer, ci, cj, *forward)
             if (j, cj, i, ci) in wanted:
                 reverse[(j, cj, i, ci)] = grid_targets(buffer, cj, ci, *back)
+        for e, (i, ci) in enumerate(edges[:, :2].tolist()):
+            uv = grid_pixels(buffer.rig.cameras[ci], buffer.stride)
+            weights[e, : uv.shape[0], : uv.shape[1]] *= textured(buffer.images[i][ci], uv)
         return targets, weights
 
 
@@ -322,7 +345,7 @@ class GuidedDIS(FlowProvider):
     residual's forward-backward consistency times ``exp(-(SAD / photo_sigma)^2)``, the
     7x7 grey-level patch difference at the match, mean removed
     (:func:`~mcgs_warp.kernels.stereo.patch_sad`), zero where the
-    prediction leaves view j. The photometric factor catches what the consistency check
+    prediction leaves view j and on flat patches (:func:`textured`). The photometric factor catches what the consistency check
     cannot: where DIS leaves a wrong prediction in place, both directions agree on it (RGB
     only, built-in sequence: confident temporal matches more than 4 px off 4.8 % -> 0.8 %,
     mean error 1.30 -> 0.46 px, 36 % fewer confident matches)."""
@@ -426,7 +449,7 @@ class GuidedDIS(FlowProvider):
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
         target[:hr, :wr] = np.where(ok[..., None], to_reduced(t.astype(np.float64), s), 0.0)
-        weight[:hr, :wr] = conf[vi, ui] * ok
+        weight[:hr, :wr] = conf[vi, ui] * ok * textured(buffer.images[i][ci], uv)
 
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
         """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel:

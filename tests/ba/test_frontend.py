@@ -47,7 +47,8 @@ def test_dis_settings_of_the_slam_loop_beat_the_preset(synthetic_seq):
 def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
     """An edge and its reverse come from the same two DIS runs and equal what each edge
     alone gives (flow(a, b) and flow(b, a), each with its own forward-backward check)."""
-    from mcgs_warp.frontend.flow import grid_targets
+    from mcgs_warp.buffer import grid_pixels
+    from mcgs_warp.frontend.flow import grid_targets, textured
 
     P = Problem(synthetic_seq, [0, 1], cross_view=False, radius=1)
     temporal = P.edges[P.edges[:, 4] == TEMPORAL]
@@ -61,8 +62,29 @@ def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
     assert len(calls) == len(pairs)  # two DIS runs per edge pair, not per edge
     for e, (i, ci, j, cj, _kind) in enumerate(pairs):
         alone = grid_targets(P.buf, ci, cj, *DISFlow().flow(P.buf.images[i][ci], P.buf.images[j][cj]))
+        uv = grid_pixels(P.buf.rig.cameras[ci], P.buf.stride)
+        alone[1][: uv.shape[0], : uv.shape[1]] *= textured(P.buf.images[i][ci], uv)
         np.testing.assert_allclose(t[e], alone[0], atol=1e-5)
         np.testing.assert_allclose(w[e], alone[1], atol=1e-5)
+
+
+def test_flat_patches_give_no_correspondence(synthetic_seq):
+    """A flat region (overexposed sky) matches itself anywhere: the forward-backward check
+    passes it, so the texture test must take its weight, raw and guided alike."""
+    from mcgs_warp.frontend.flow import GuidedDIS
+
+    P = Problem(synthetic_seq, [0, 1], cross_view=False, radius=1)
+    h = P.buf.rig.cameras[0].height
+    for k in (0, 1):  # the top third of camera 0 overexposed in both keyframes
+        img = P.buf.images[k][0].copy()
+        img[: h // 3] = 1.0
+        P.buf.images[k] = [img] + list(P.buf.images[k][1:])
+    edges = np.array([[0, 0, 1, 0, TEMPORAL], [1, 0, 0, 0, TEMPORAL]], np.int32)
+    for name, provider in (("raw", DISFlow()), ("guided", GuidedDIS(DISFlow()))):
+        _, w = provider.correspondences(P.buf, edges)
+        rows = (h // 3 - 4) // P.buf.stride  # grid rows whose 7x7 window is all sky
+        assert np.all(w[:, :rows] == 0), name
+        assert (w[:, rows + 2 : h // P.buf.stride] > 0.5).mean() > 0.5, name  # the textured rest still matches
 
 
 def test_dis_reverse_of_different_sized_views(synthetic_seq):
