@@ -81,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", default=None, help="write the metrics to this JSON file")
     ev.add_argument("--max-dt", type=float, default=0.02, help="timestamp association tolerance, s (default 0.02)")
     ev.add_argument("--no-scale", action="store_true", help="align with SE(3) instead of Sim(3)")
+    ev.add_argument("--rpe-delta", type=int, default=1, help="RPE pose-pair spacing in matched poses (frames), as evo_rpe --delta (default 1)")
     ev.set_defaults(func=cmd_eval)
 
     ex = sub.add_parser("export", help="export a run's map to USD and/or 3DGS PLY")
@@ -106,7 +107,7 @@ def cmd_synth(args) -> int:
 
 
 def _print_metrics(metrics: dict) -> None:
-    for key in ("ate_rmse_m", "ate_percent_of_path", "ate_se3_rmse_m", "sim3_scale", "path_length_m", "psnr_db", "ssim", "depth_l1_m", "n_gaussians", "n_keyframes", "seconds_total"):
+    for key in ("ate_rmse_m", "ate_percent_of_path", "ate_se3_rmse_m", "sim3_scale", "path_length_m", "rpe_trans_m", "rpe_rot_deg", "psnr_db", "psnr_nonkeyframe_db", "ssim", "depth_l1_m", "n_gaussians", "n_keyframes", "seconds_total"):
         if metrics.get(key) is not None:
             v = metrics[key]
             print(f"  {key:<22} {v:.4f}" if isinstance(v, float) else f"  {key:<22} {v}")
@@ -155,9 +156,13 @@ def cmd_eval(args) -> int:
     from .eval.trajectory import evaluate
     from .io import atomic_write
 
+    from .errors import InputError
+
+    if args.rpe_delta < 1:
+        raise InputError(None, "--rpe-delta", f"expected at least 1 (frames), got {args.rpe_delta}")
     est = read_tum(args.est, min_poses=3)
     gt = read_tum(args.gt, min_poses=3)
-    metrics, aligned, matched_gt, times = evaluate(est, gt, max_dt=args.max_dt, with_scale=not args.no_scale, return_timestamps=True)
+    metrics, aligned, matched_gt, times = evaluate(est, gt, max_dt=args.max_dt, with_scale=not args.no_scale, rpe_delta=args.rpe_delta, return_timestamps=True)
     d = metrics.to_dict()
     for k, v in d.items():
         print(f"{k:<16} {v:.6f}" if isinstance(v, float) else f"{k:<16} {v}")

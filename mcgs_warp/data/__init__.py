@@ -24,7 +24,7 @@ def open_sequence(path, rig_path=None, kitti_cameras: str = "grey") -> Sequence:
     path = Path(path)
     if not path.is_dir():
         raise InputError(path, None, "data folder not found")
-    if (path / "rig.yaml").is_file() or (path / "timestamps.txt").is_file():
+    if (path / "timestamps.txt").is_file() or ((path / "rig.yaml").is_file() and not (path / "rgb.txt").is_file()):  # a TUM folder may hold its rig.yaml
         return FolderSequence(path)
     if is_euroc(path):
         return EurocSequence(path)

@@ -10,7 +10,10 @@ Layout (the sequence folder, or its ``mav0/`` folder)::
 
 ``sensor.yaml`` files start with OpenCV's ``%YAML:1.0`` line, which PyYAML rejects;
 :func:`mcgs_warp.rig.load_yaml` drops it. Frames are the timestamps both cameras
-have; images are replicated to RGB. Ground truth poses are of the body (IMU) frame,
+have: a cam1 image within 5 ms (``MAX_SYNC_DT``) of a cam0 image, nearest first, pairs
+with it, so a software-synced or re-exported recording whose stamps differ by a little
+still reads (a camera's ``time_offset``, camera clock = rig clock + offset, is removed
+first); the frame's timestamp is cam0's. Images are replicated to RGB. Ground truth poses are of the body (IMU) frame,
 the frame ``T_BS`` maps into, so they are ``T_w_b``.
 """
 
@@ -24,8 +27,8 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import pose
 from ..rig import CameraSpec, Rig, load_yaml, parse_pose
-from .sequence import MAX_UNMATCHED_FRACTION, Frame, Sequence, warn
-from .trajectory import Trajectory
+from .sequence import MAX_SYNC_DT, MAX_UNMATCHED_FRACTION, Frame, Sequence, warn
+from .trajectory import Trajectory, nearest_timestamps
 
 DISTORTION_MODELS = {"radial-tangential": "pinhole", "radtan": "pinhole", "equidistant": "fisheye"}
 
@@ -128,15 +131,20 @@ class EurocSequence(Sequence):
                 by_stamp[ns] = folder / "data" / row[1]
             stamps.append(by_stamp)
             files.append(by_stamp)
-        common = sorted(set(stamps[0]) & set(stamps[1]))
-        if not common:
-            raise InputError(self.root, None, "cam0 and cam1 share no timestamps")
-        self._check_dropped(len(set(stamps[0]) | set(stamps[1])), len(common), len(stamps[0]), len(stamps[1]))
+        ns = [np.array(sorted(st), dtype=np.int64) for st in stamps]
+        t = [(n - ns[0][0]) * 1e-9 - c.time_offset for n, c in zip(ns, cams)]  # rig clock, relative to cam0's first image
+        j = nearest_timestamps(t[0], t[1], MAX_SYNC_DT)
+        i = np.nonzero(j >= 0)[0]
+        _, first = np.unique(j[i], return_index=True)  # one cam0 image per cam1 image
+        i = np.sort(i[first])
+        if not len(i):
+            raise InputError(self.root, None, f"cam0 and cam1 have no images within {MAX_SYNC_DT * 1e3:g} ms of each other")
+        self._check_dropped(len(ns[0]) + len(ns[1]) - len(i), len(i), len(ns[0]), len(ns[1]))
         self.rig = Rig(cams)
         self.gravity = np.array([0.0, 0.0, -1.0])  # the ground truth's world frame has z up
-        self._ns = common
+        self._ns = list(zip(ns[0][i].tolist(), ns[1][j[i]].tolist()))
         self._files = files
-        self.timestamps = np.array(common, dtype=np.float64) * 1e-9
+        self.timestamps = ns[0][i] * 1e-9 - cams[0].time_offset
         gt = self.root / "state_groundtruth_estimate0" / "data.csv"
         self.groundtruth = read_groundtruth(gt) if gt.is_file() else None
 
@@ -154,6 +162,5 @@ class EurocSequence(Sequence):
     def load_frame(self, k: int) -> Frame:
         from ..io import read_image
 
-        ns = self._ns[k]
-        images = [read_image(self._files[i][ns], (c.width, c.height)) for i, c in enumerate(self.rig.cameras)]
+        images = [read_image(self._files[i][ns], (c.width, c.height)) for i, (ns, c) in enumerate(zip(self._ns[k], self.rig.cameras))]
         return Frame(k, float(self.timestamps[k]), images, [None, None])

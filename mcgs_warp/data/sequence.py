@@ -10,9 +10,9 @@ Our folder format::
     cam<i>/rgb/<index>.png     colour, index zero-padded to 6 digits (000000.png)
     cam<i>/depth/<index>.png   optional: 16-bit depth in millimetres (0 = none)
     groundtruth.txt            optional: rig body poses T_w_b, TUM format
-    metadata.yaml              optional: ``depth: exact | mono | none`` (default exact):
-                               whether cam<i>/depth is exact sensor depth or an inexact
-                               monocular-style prior (JDSA rescales it)
+    metadata.yaml              ``depth: exact | mono | none``, required when cam<i>/depth
+                               exists: whether it is exact sensor depth, an inexact
+                               monocular-style prior (JDSA rescales it), or to be ignored
     gt/cam<i>/depth/<index>.png  optional: exact depth, read only for evaluation
 """
 
@@ -31,6 +31,7 @@ from .trajectory import Trajectory, read_tum, write_tum
 DEPTH_SCALE_MM = 1000.0  # our depth PNGs: uint16 millimetres
 METADATA = "metadata.yaml"  # what the folder's depth is: exact | mono | none
 DEPTH_KINDS = ("exact", "mono", "none")
+MAX_SYNC_DT = 0.005  # s: images of two cameras this close are one rig frame (readers that pair streams)
 MAX_UNMATCHED_FRACTION = 0.10  # readers: more frames than this without a partner is worth a word
 
 
@@ -63,9 +64,11 @@ class Sequence:
     gravity = None
 
     def depth_cameras(self) -> list[bool]:
-        """Per camera: does every frame carry depth for it? (Readers check their files;
-        depth on some frames only is an error there, never a silent mode switch.)"""
-        return [d is not None for d in self[0].depths]
+        """Per camera: does the sequence carry depth for it (on every frame; a frame may hold
+        0 = unknown pixels)? Readers that read depth override this from their file lists, never
+        from one decoded frame; depth on some frames only is an error or a documented
+        dropout there, never a silent mode switch. The base class has none."""
+        return [False] * len(self.rig)
 
     def gt_depths(self, k: int) -> list | None:
         """Exact depth of frame ``k`` per camera [H,W] (m), for evaluation and oracle
@@ -157,7 +160,9 @@ class FolderSequence(Sequence):
             raise InputError(self.root, None, "sequence folder not found")
         self.name = self.root.name
         self.rig = load_rig(self.root / "rig.yaml")
-        self.depth_exact = read_metadata(self.root) != "mono"
+        offsets = [c.name for c in self.rig.cameras if c.time_offset != 0]
+        if offsets:
+            warn(self.root / "rig.yaml", f"time_offset of {', '.join(offsets)} is not used: timestamps.txt stamps synchronized frames on the rig clock")
         self.has_gt_depth = all((self.root / "gt" / f"cam{i}" / "depth").is_dir() for i in range(len(self.rig)))
         self.timestamps = read_timestamps(self.root / "timestamps.txt")
         self.has_depth = []
@@ -166,14 +171,33 @@ class FolderSequence(Sequence):
             if not rgb.is_dir():
                 raise InputError(rgb, None, f"missing image folder for camera {i} ({self.rig.cameras[i].name})")
             self._check_frame_files(rgb)
-            depth = self.root / f"cam{i}" / "depth"
-            self.has_depth.append(depth.is_dir())
-            if self.has_depth[-1]:
-                self._check_frame_files(depth)
+            self.has_depth.append((self.root / f"cam{i}" / "depth").is_dir())
+        self._read_depth_kind()
+        for i, has in enumerate(self.has_depth):
+            if has:
+                self._check_frame_files(self.root / f"cam{i}" / "depth")
         gt = self.root / "groundtruth.txt"
         self.groundtruth = read_tum(gt) if gt.is_file() else None
         if self.groundtruth is not None:
             self._warn_groundtruth_outside(gt)
+
+    def _read_depth_kind(self) -> None:
+        """What ``cam<i>/depth`` is, from ``metadata.yaml``: required beside depth folders
+        (exact and inexact depth run differently, and neither is a safe guess); ``depth:
+        none`` ignores them (one warning); ``exact`` or ``mono`` without them is an error."""
+        meta, folders = self.root / METADATA, [f"cam{i}/depth" for i, h in enumerate(self.has_depth) if h]
+        if not meta.is_file():
+            if folders:
+                raise InputError(meta, None, f"missing: {', '.join(folders)} hold depth; write 'depth: exact' (sensor depth, used as is) or 'depth: mono' (an inexact prior that JDSA rescales) or 'depth: none' (ignore it)")
+            kind = "none"
+        else:
+            kind = read_metadata(self.root)
+        if kind == "none" and folders:
+            warn(meta, f"says depth: none, so {', '.join(folders)} is not used")
+            self.has_depth = [False] * len(self.has_depth)
+        elif kind != "none" and not folders:
+            raise InputError(meta, "depth", f"says {kind}, but no cam<i>/depth folder holds depth; say 'depth: none' or add the depth")
+        self.depth_exact = kind != "mono"
 
     def _check_frame_files(self, folder: Path) -> None:
         """Frames 0..K-1 are all in ``folder`` (a gap is a missing frame) and it holds no
@@ -245,6 +269,7 @@ class FolderWriter:
         self.root.mkdir(parents=True, exist_ok=True)
         self.rig = rig
         self.depth_kind = depth_kind
+        self.wrote_depth = False
         save_rig(rig, self.root / "rig.yaml")
 
     def write_frame(self, k: int, images, depths=None, gt_depths=None) -> None:
@@ -252,8 +277,9 @@ class FolderWriter:
 
         for i, img in enumerate(images):
             write_image(self.root / f"cam{i}" / "rgb" / frame_name(k), img)
-            if depths is not None and depths[i] is not None:
+            if depths is not None and depths[i] is not None and self.depth_kind != "none":
                 write_image(self.root / f"cam{i}" / "depth" / frame_name(k), depth_to_mm(depths[i]))
+                self.wrote_depth = True
             if gt_depths is not None and gt_depths[i] is not None:
                 write_image(self.root / "gt" / f"cam{i}" / "depth" / frame_name(k), depth_to_mm(gt_depths[i]))
 
@@ -267,7 +293,7 @@ class FolderWriter:
         with atomic_write(self.root / METADATA) as f:
             f.write(f"# What this folder's depth is (mcgs_warp.data.sequence). exact: sensor depth, used as is;\n"
                     f"# mono: an inexact monocular-style prior that JDSA rescales; none: no depth.\n"
-                    f"# gt/cam<i>/depth (if present) holds exact depth for evaluation only.\ndepth: {self.depth_kind}\n")
+                    f"# gt/cam<i>/depth (if present) holds exact depth for evaluation only.\ndepth: {self.depth_kind if self.wrote_depth else 'none'}\n")
 
 
 def depth_to_mm(depth) -> np.ndarray:
@@ -276,19 +302,19 @@ def depth_to_mm(depth) -> np.ndarray:
 
 
 def read_metadata(root: Path) -> str:
-    """The folder's depth kind from ``metadata.yaml`` (``exact`` when the file is absent)."""
+    """The folder's depth kind from ``metadata.yaml``."""
     from ..rig import load_yaml
 
     path = Path(root) / METADATA
-    if not path.is_file():
-        return "exact"
     data = load_yaml(path) or {}
     if not isinstance(data, dict):
         raise InputError(path, None, f"expected a mapping, got {type(data).__name__}")
     unknown = sorted(set(data) - {"depth"})
     if unknown:
         raise InputError(path, unknown[0], "unknown key (expected: depth)")
-    kind = data.get("depth", "exact")
+    if "depth" not in data:
+        raise InputError(path, "depth", f"missing (expected one of {' | '.join(DEPTH_KINDS)})")
+    kind = data["depth"]
     if kind not in DEPTH_KINDS:
         raise InputError(path, "depth", f"expected one of {' | '.join(DEPTH_KINDS)}, got {kind!r}")
     return kind

@@ -3,7 +3,11 @@
 Layout: ``rgb.txt`` and ``depth.txt`` ('timestamp filename' lines, '#' comments),
 ``rgb/``, ``depth/`` (16-bit PNG, 5000 units per metre), optional
 ``groundtruth.txt`` (TUM trajectory of the camera, so ``T_b_c = I``). Depth frames
-are associated with the nearest RGB timestamp within 20 ms (as TUM's associate.py).
+are associated with the nearest RGB timestamp within 20 ms (as TUM's associate.py); an RGB
+frame without one has no depth pixel (all 0 = unknown, as a sensor dropout), so the mode of
+the run (RGB-D or not) never depends on which frames happen to have depth. A ``rig.yaml``
+``time_offset`` (camera clock = rig clock + offset) moves the frames onto the rig clock of
+the ground truth.
 
 Calibration: a ``rig.yaml`` in the folder (or passed in), else the published
 calibration of the Freiburg 1/2/3 sensor named in the folder name.
@@ -66,19 +70,24 @@ class TumSequence(Sequence):
         self.root = Path(path)
         self.name = self.root.name
         self.rig = self._rig(rig_path)
-        self.timestamps, self._rgb = read_file_list(self.root / "rgb.txt")
+        camera_stamps, self._rgb = read_file_list(self.root / "rgb.txt")
+        self.timestamps = camera_stamps - self.rig.cameras[0].time_offset  # rig clock
         self._depth = [None] * len(self.timestamps)
+        self.has_depth = False
         if (self.root / "depth.txt").is_file():
             t_d, names = read_file_list(self.root / "depth.txt")
-            match = associate(self.timestamps, t_d)
+            match = associate(camera_stamps, t_d)  # both on the sensor's clock
             for k, j in enumerate(match):
                 if j >= 0:
                     self._depth[k] = names[j]
             unmatched = int(np.count_nonzero(match < 0))
-            if unmatched > MAX_UNMATCHED_FRACTION * len(match):
+            self.has_depth = unmatched < len(match)
+            if not self.has_depth:
+                warn(self.root / "depth.txt", f"no rgb frame (rgb.txt) has a depth frame within {MAX_ASSOCIATION_DT} s: the run has no depth")
+            elif unmatched > MAX_UNMATCHED_FRACTION * len(match):
                 warn(
                     self.root / "depth.txt",
-                    f"{unmatched} of {len(match)} rgb frames (rgb.txt) have no depth frame within {MAX_ASSOCIATION_DT} s; those frames run without depth",
+                    f"{unmatched} of {len(match)} rgb frames (rgb.txt) have no depth frame within {MAX_ASSOCIATION_DT} s; those frames have no depth pixel (0 = unknown)",
                 )
         gt = self.root / "groundtruth.txt"
         self.groundtruth = read_tum(gt) if gt.is_file() else None
@@ -102,4 +111,9 @@ class TumSequence(Sequence):
         depth = None
         if self._depth[k] is not None:
             depth = read_image(self.root / self._depth[k], size, depth=True).astype(np.float32) / DEPTH_SCALE
+        elif self.has_depth:
+            depth = np.zeros((cam.height, cam.width), np.float32)  # a dropout: no depth pixel
         return Frame(k, float(self.timestamps[k]), [image], [depth])
+
+    def depth_cameras(self) -> list[bool]:
+        return [self.has_depth]

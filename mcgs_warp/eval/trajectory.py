@@ -1,9 +1,13 @@
 """Trajectory evaluation: timestamp association, Umeyama Sim(3) alignment, ATE and RPE.
 
 ATE (absolute trajectory error) is the RMSE of positions after aligning the estimate
-to the ground truth with the similarity transform that minimizes it (Umeyama 1991),
-as the TUM RGB-D benchmark tools and evo do. RPE is the RMSE of relative
-translation errors between poses ``delta`` apart (after the same alignment).
+to the ground truth with the similarity (or, ``with_scale=False``, rigid) transform that
+minimizes it (Umeyama 1991), as the TUM RGB-D benchmark tools and evo do. RPE is the
+relative pose error as evo's ``evo_rpe`` defines it: for associated poses ``delta`` apart,
+``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (P estimate, Q ground truth), RMSE of its translation
+norm (m) and of its rotation angle (degrees). It needs no alignment; with
+``with_scale`` the estimate's translations are first multiplied by the Sim(3) scale (evo's
+``--correct_scale``).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import numpy as np
 
 from ..data.trajectory import Trajectory, nearest_timestamps
 from ..errors import InputError
+from ..geometry import invert
 
 
 def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +50,9 @@ class TrajectoryMetrics:
     ate_rmse_m: float
     ate_mean_m: float
     ate_max_m: float
-    rpe_rmse_m: float
+    rpe_trans_m: float  # RMSE of the relative pose error's translation over pose pairs rpe_delta apart
+    rpe_rot_deg: float  # RMSE of its rotation angle
+    rpe_delta: int  # in associated poses (frames)
     scale: float
     path_length_m: float
     n_matched: int
@@ -65,18 +72,41 @@ def evaluate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, with_scale: 
     s, R, t = umeyama(P, G, with_scale)
     A = s * P @ R.T + t
     err = np.linalg.norm(A - G, axis=1)
-    rel = []
-    for a in range(len(i) - rpe_delta):
-        d_est = A[a + rpe_delta] - A[a]
-        d_gt = G[a + rpe_delta] - G[a]
-        rel.append(np.linalg.norm(d_est - d_gt))
+    rpe_t, rpe_r = relative_pose_error(est.poses[i], gt.poses[j], rpe_delta, scale=s)
     metrics = TrajectoryMetrics(
         ate_rmse_m=float(np.sqrt(np.mean(err**2))),
         ate_mean_m=float(err.mean()),
         ate_max_m=float(err.max()),
-        rpe_rmse_m=float(np.sqrt(np.mean(np.square(rel)))) if rel else 0.0,
+        rpe_trans_m=rpe_t,
+        rpe_rot_deg=rpe_r,
+        rpe_delta=int(rpe_delta),
         scale=float(s),
         path_length_m=float(np.linalg.norm(np.diff(G, axis=0), axis=1).sum()),
         n_matched=int(len(i)),
     )
     return (metrics, A, G, est.timestamps[i]) if return_timestamps else (metrics, A, G)
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) of rotation matrices [...,3,3], accurate near 0 and pi."""
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0))
+
+
+def relative_pose_error(P: np.ndarray, Q: np.ndarray, delta: int = 1, scale: float = 1.0) -> tuple[float, float]:
+    """evo-style RPE of associated estimate ``P`` and ground-truth ``Q`` poses [N,4,4] over
+    the pairs ``(i, i + delta)``: ``(translation RMSE in m, rotation RMSE in degrees)``; the
+    estimate's translations are multiplied by ``scale`` first. NaN with fewer than
+    ``delta + 1`` poses."""
+    if delta < 1:
+        raise ValueError(f"delta: expected at least 1, got {delta}")
+    if len(P) <= delta:
+        return float("nan"), float("nan")
+    P = np.array(P, np.float64)
+    P[:, :3, 3] *= scale
+    rel_est = invert(P[:-delta]) @ P[delta:]
+    rel_gt = invert(Q[:-delta]) @ Q[delta:]
+    E = invert(rel_gt) @ rel_est
+    t = np.linalg.norm(E[:, :3, 3], axis=1)
+    r = np.degrees(rotation_angle(E[:, :3, :3]))
+    return float(np.sqrt(np.mean(t**2))), float(np.sqrt(np.mean(r**2)))

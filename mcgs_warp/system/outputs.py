@@ -2,12 +2,14 @@
 
 * ``trajectory.txt`` (rig body ``T_w_b``, TUM) and ``trajectory_<camera>.txt`` (``T_w_c``)
 * ``map.usdc`` (``UsdVol.ParticleField3DGaussianSplat`` + keyframe cameras), ``map.ply`` (3DGS)
-* ``renders/keyframe_<k>_<camera>.png``: input | render | depth, for a few keyframes
+* ``renders/keyframe_<k>_<camera>.png``: input | render | depth, for a few keyframes, and
+  ``renders/frame_<i>_<camera>.png``: input | render of one frame the map was not fitted to
 * ``depth/keyframe_<k>_<camera>.png``: every keyframe view's rendered depth, 16-bit
   millimetres, 0 = none (what RGB-D datasets use)
-* ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned) and path length when ground truth
-  exists, PSNR, SSIM over the keyframe views, depth L1 against the sequence's exact depth
-  (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
+* ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned; over every frame and over keyframes
+  only), evo-style RPE and path length when ground truth exists, PSNR, SSIM over the
+  keyframe views and over held-out non-keyframe frames, depth L1 and its coverage against
+  the sequence's exact depth (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
   correspondences used, for an inexact prior its error before and after JDSA's scale grids,
   counts and timings
 * ``plots/trajectory.png`` (top view in the plane orthogonal to gravity where the reader knows
@@ -59,6 +61,34 @@ def keyframe_views(slam):
             yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
 
 
+MAX_HELD_OUT_FRAMES = 20  # non-keyframe frames rendered for psnr_nonkeyframe_db (evenly spaced)
+
+
+def held_out_frames(n_frames: int, keyframe_frames, max_frames: int = MAX_HELD_OUT_FRAMES) -> list:
+    """Up to ``max_frames`` evenly spaced frame indices that are not keyframes."""
+    others = np.setdiff1d(np.arange(n_frames), np.asarray(keyframe_frames, int))
+    if not len(others):
+        return []
+    return others[np.unique(np.linspace(0, len(others) - 1, min(max_frames, len(others))).round().astype(int))].tolist()
+
+
+def held_out_views(slam, trajectory: Trajectory, frames):
+    """Render ``frames`` (non-keyframes: images the map was never fitted to) at their
+    estimated (interpolated) rig poses, with the exposure of the keyframe nearest in time:
+    yields (frame index, c, rendered colour, input image)."""
+    m, buf = slam.mapper, slam.buf
+    kf = np.array(buf.frame_index)
+    exposure = m.buf.exposure.numpy()
+    for f in frames:
+        k = int(np.argmin(np.abs(kf - f)))
+        colour, _ = m.render(Views.create(m.cams, buf.rig.camera_poses(trajectory.poses[f]), buf.device))
+        col = colour.numpy()
+        images = slam.seq[f].images
+        for c, spec in enumerate(buf.rig.cameras):
+            a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
+            yield f, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), images[c]
+
+
 def prior_errors(slam) -> tuple[float | None, float | None]:
     """Mean |depth - exact depth| (m) of an inexact metric prior (stereo, monocular-style) on
     MCBA's grid, as given and times JDSA's scale grids (eq. 5), over every keyframe view:
@@ -86,6 +116,19 @@ def prior_errors(slam) -> tuple[float | None, float | None]:
     return float(np.concatenate(raw).mean()), float(np.concatenate(scaled).mean())
 
 
+MAX_METRIC_SCALE_ERROR = 0.1  # a metric run whose Sim(3) scale is further from 1 is worth a word
+
+
+def scale_warning(metric_scale: bool, sim3_scale: float) -> str | None:
+    """What to tell a user whose run claims metric scale but whose trajectory needs a
+    Sim(3) scale far from 1 to fit the ground truth (depth in another unit, a wrong
+    baseline), or None. Images alone cannot tell a depth unit from a scene size."""
+    if not metric_scale or abs(sim3_scale - 1.0) <= MAX_METRIC_SCALE_ERROR:
+        return None
+    return (f"the run claims metric scale, but its trajectory needs a Sim(3) scale of {sim3_scale:.3f} to fit the ground truth: "
+            f"check the depth unit (our depth PNGs: millimetres; TUM's: 1/5000 m) and the rig's baselines (T_b_c, m)")
+
+
 def _quantiles(values) -> dict | None:
     return {"min": round(float(np.min(values)), 4), "median": round(float(np.median(values)), 4)} if len(values) else None
 
@@ -110,7 +153,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     # Image metrics over every keyframe view; a few renders beside their inputs.
     n_render = slam.cfg.output.renders
     show = set(np.linspace(0, len(buf) - 1, min(n_render, len(buf))).astype(int).tolist()) if n_render else set()
-    psnrs, ssims, depth_err = [], [], []
+    psnrs, ssims, depth_err, covered, with_depth = [], [], [], 0, 0
     frames: dict = {}
     for k, c, col, dep, img, fidx in keyframe_views(slam):
         psnrs.append(psnr(col, img))
@@ -121,11 +164,20 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         write_image(out / "depth" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", depth_to_mm(dep))
         if sensor is not None:
             ok = (sensor > 0) & (dep > 0)
+            covered, with_depth = covered + int(ok.sum()), with_depth + int((sensor > 0).sum())
             if ok.any():
                 depth_err.append(float(np.abs(dep[ok] - sensor[ok]).mean()))
         if k in show:
             vmax = float(np.percentile(sensor[sensor > 0], 95)) if sensor is not None and (sensor > 0).any() else float(np.percentile(dep[dep > 0], 95)) if (dep > 0).any() else 1.0
             write_image(out / "renders" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", np.concatenate([img, col, depth_colormap(dep, vmax)], axis=1))
+
+    held_psnr, held_ssim = [], []
+    held = held_out_frames(len(traj), buf.frame_index)
+    for f, c, col, img in held_out_views(slam, traj, held):
+        held_psnr.append(psnr(col, img))
+        held_ssim.append(ssim(col, img, with_grad=False)[0])
+        if n_render and f == held[len(held) // 2]:
+            write_image(out / "renders" / f"frame_{f:06d}_{rig.cameras[c].name}.png", np.concatenate([img, col], axis=1))
 
     prior_l1, prior_jdsa_l1 = prior_errors(slam)
     metrics = {
@@ -133,7 +185,11 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "path_length_m": float(np.linalg.norm(np.diff(traj.positions, axis=0), axis=1).sum()),
         "psnr_db": float(np.mean(psnrs)),
         "ssim": float(np.mean(ssims)),
+        "psnr_nonkeyframe_db": float(np.mean(held_psnr)) if held_psnr else None,  # frames the map was not fitted to
+        "ssim_nonkeyframe": float(np.mean(held_ssim)) if held_ssim else None,
+        "n_nonkeyframe_views": len(held_psnr),
         "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
+        "depth_coverage": covered / with_depth if with_depth else None,  # fraction of exact-depth pixels the render gives a depth (depth_l1_m scores only those)
         "depth_source": slam.prior.name,
         "prior_l1_m": prior_l1,  # the inexact prior against exact depth, before JDSA ...
         "prior_jdsa_l1_m": prior_jdsa_l1,  # ... and after its scale grids (equal with --no-jdsa)
@@ -155,9 +211,20 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     if seq.groundtruth is not None:
         tm, aligned, gt_xyz, times = evaluate(traj, seq.groundtruth, return_timestamps=True)
         se3, se3_aligned, _ = evaluate(traj, seq.groundtruth, with_scale=False)
-        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "rpe_rmse_m": tm.rpe_rmse_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
+        # RPE as a user compares it: metric runs as they are, others after the Sim(3) scale
+        rpe = se3 if slam.metric_scale else tm
+        metrics.update({"rpe_trans_m": rpe.rpe_trans_m, "rpe_rot_deg": rpe.rpe_rot_deg, "rpe_delta_frames": rpe.rpe_delta, "rpe_scale_corrected": not slam.metric_scale})
+        if len(buf) >= 3:  # keyframes only: the poses the run estimated, none interpolated
+            kf_traj = Trajectory(np.array(buf.timestamps), kf_poses)
+            metrics.update({"ate_keyframes_rmse_m": evaluate(kf_traj, seq.groundtruth)[0].ate_rmse_m, "ate_keyframes_se3_rmse_m": evaluate(kf_traj, seq.groundtruth, with_scale=False)[0].ate_rmse_m})
+        metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
         # a run that claims metric scale is judged without rescaling: the plot shows what a user gets
         aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")
+        why = scale_warning(slam.metric_scale, tm.scale)
+        if why:
+            from ..data.sequence import warn
+
+            warn(None, why)
     with atomic_write(out / "metrics.json") as f:
         json.dump(metrics, f, indent=2)
     plot_trajectory(out / "plots" / "trajectory.png", aligned, gt_xyz, times, gravity=seq.gravity, ate_label=label)

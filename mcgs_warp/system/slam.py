@@ -42,9 +42,10 @@ from .config import RunConfig
 GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
 log = logging.getLogger("mcgs_warp.slam")
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
-#: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background), so that
+#: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
+#: 5: per-keyframe depth files beside the checkpoint), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 4
+CHECKPOINT_FORMAT = 5
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
 
 
@@ -111,6 +112,10 @@ class SLAM:
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
+        if not self.metric_scale:
+            from ..data.sequence import warn
+
+            warn(None, f"depth source {self.prior.name!r} and no cross-view edges between overlapping rig cameras: the run is monocular; its trajectory and map have no metric scale (judge it by the Sim(3) ATE)")
 
     @property
     def exact_depth(self) -> bool:
@@ -407,9 +412,11 @@ class SLAM:
 
     # ----------------------------------------------------------------------------------
     def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
-        """Write the whole online state atomically (``path``: a .npz file; the factor graph's
-        correspondences go to segment files beside it, :func:`correspondence_store`, written
-        when they change)."""
+        """Write the whole online state atomically (``path``: a .npz file). The large parts
+        live beside it and are written only when they change, so a run's checkpoint I/O grows
+        with the keyframes, not with their square: the factor graph's correspondences in
+        segment files (:func:`correspondence_store`), each mapped keyframe's full-resolution
+        depth targets and placement depth in a file named by its content (:func:`keyframe_store`)."""
         import json
 
         from ..io import atomic_write
@@ -428,13 +435,39 @@ class SLAM:
             kf_frames=np.array(kf_frames, dtype=np.int64),
             **self.graph.state_arrays(correspondence_store(path)),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
-            **{f"targets_cam{c}": np.array([self.buf.targets[k][c] for k in sorted(self._mapped_depth)] if not self.exact_depth else [], dtype=np.float32) for c in range(len(self.seq.rig))},
-            mapped_depth=np.array([self._mapped_depth[k] for k in sorted(self._mapped_depth)], dtype=np.float64).reshape(-1, len(self.seq.rig), buf.h, buf.w),
+            keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
             meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
         self.graph.prune_store(correspondence_store(path))  # segments only the replaced checkpoint used
+        keep = set(arrays["keyframe_files"].tolist())
+        for old in keyframe_store(path).glob("kf*.npz"):
+            if old.name not in keep:
+                old.unlink(missing_ok=True)
+
+    def _save_keyframe_files(self, store: Path) -> list:
+        """One file per mapped keyframe (``kf<k>_<content digest>.npz``: ``targets_cam<c>``,
+        the full-resolution mapping depth targets, none for exact sensor depth, which is
+        re-read; ``mapped_depth`` [C,h,w]); a file already there is not written again."""
+        import hashlib
+
+        from ..io import atomic_write
+
+        store.mkdir(parents=True, exist_ok=True)
+        names = []
+        for k in sorted(self._mapped_depth):
+            arrays = {f"targets_cam{c}": np.asarray(self.buf.targets[k][c] if not self.exact_depth else np.zeros(0), np.float32) for c in range(len(self.seq.rig))}
+            arrays["mapped_depth"] = np.asarray(self._mapped_depth[k], np.float64)
+            digest = hashlib.blake2b(digest_size=10)
+            for v in arrays.values():
+                digest.update(np.ascontiguousarray(v).tobytes())
+            name = f"kf{k:05d}_{digest.hexdigest()}.npz"
+            if not (store / name).is_file():
+                with atomic_write(store / name, "wb") as f:
+                    np.savez(f, **arrays)
+            names.append(name)
+        return names
 
     def load_checkpoint(self, path) -> tuple[int, list]:
         """Restore the state saved by :meth:`save_checkpoint`; returns (next frame, keyframe frames)."""
@@ -470,9 +503,16 @@ class SLAM:
                 self.graph.load_state_arrays(a, correspondence_store(path))
             except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
                 raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
-            self._mapped_depth = {int(k): d for k, d in zip(a["mapped_keys"], a["mapped_depth"])}
+            try:
+                files = {}
+                for k, name in zip(a["mapped_keys"], a["keyframe_files"]):
+                    with np.load(keyframe_store(path) / str(name), allow_pickle=False) as z:
+                        files[int(k)] = {n: z[n] for n in z.files}
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+                raise InputError(keyframe_store(path), None, f"unreadable checkpoint keyframe file ({e}); start without --resume") from None
+            self._mapped_depth = {k: f["mapped_depth"] for k, f in files.items()}
             if not self.exact_depth:  # estimated targets: restore them as they were
-                depths = {int(k): [a[f"targets_cam{c}"][n] for c in range(len(self.seq.rig))] for n, k in enumerate(a["mapped_keys"])}
+                depths = {k: [f[f"targets_cam{c}"] for c in range(len(self.seq.rig))] for k, f in files.items()}
             else:
                 depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
             self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
@@ -609,6 +649,12 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
         return q / np.linalg.norm(q)
     th = np.arccos(d)
     return (np.sin((1 - u) * th) * q0 + np.sin(u * th) * q1) / np.sin(th)
+
+
+def keyframe_store(checkpoint) -> Path:
+    """The folder beside a checkpoint ``.npz`` that holds its per-keyframe files
+    (``out/checkpoint.npz`` -> ``out/checkpoint.keyframes/``)."""
+    return Path(checkpoint).with_suffix(".keyframes")
 
 
 def correspondence_store(checkpoint) -> Path:

@@ -195,6 +195,9 @@ def test_depth_source_choice(synthetic_seq, tmp_path):
         choose_prior(partial, "sensor", lambda: stereo)
     for c in (0, 2):
         shutil.rmtree(none / f"cam{c}" / "depth")
+    with pytest.raises(InputError, match="metadata.yaml: depth: says exact, but no cam<i>/depth folder"):
+        open_sequence(none)
+    (none / "metadata.yaml").write_text("depth: none\n")
     rgb_only = open_sequence(none)
     assert isinstance(choose_prior(rgb_only, "auto", lambda: stereo), StereoDepth)
     assert isinstance(choose_prior(CameraSubset(rgb_only, [1]), "auto", lambda: None), NoDepth)

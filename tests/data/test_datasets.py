@@ -33,7 +33,7 @@ distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
 """
 
 
-def make_euroc(root, w=40, h=30, stamps=(1403636579763555584, 1403636579813555456, 1403636579863555584)):
+def make_euroc(root, w=40, h=30, stamps=(1403636579763555584, 1403636579813555456, 1403636579863555584), cam1_shift_ns=0):
     rng = np.random.default_rng(0)
     for i in (0, 1):
         cam = root / "mav0" / f"cam{i}"
@@ -41,7 +41,7 @@ def make_euroc(root, w=40, h=30, stamps=(1403636579763555584, 140363657981355545
         data = ", ".join(f"{v!r}" for row in T_BS for v in row)
         (cam / "sensor.yaml").write_text(SENSOR.format(data=data, w=w, h=h))
         lines = ["#timestamp [ns],filename"]
-        for ns in stamps if i == 0 else stamps[1:]:  # cam1 misses the first frame
+        for ns in stamps if i == 0 else [v + cam1_shift_ns for v in stamps[1:]]:  # cam1 misses the first frame
             cv2.imwrite(str(cam / "data" / f"{ns}.png"), rng.integers(0, 255, (h, w), dtype=np.uint8))
             lines.append(f"{ns},{ns}.png")
         (cam / "data.csv").write_text("\n".join(lines) + "\n")
@@ -73,6 +73,18 @@ def test_euroc_reader(tmp_path):
     R = Rotation.from_quat([-0.153, -0.827, -0.082, 0.534]).as_matrix()
     np.testing.assert_allclose(seq.groundtruth.poses[0, :3, :3], R, atol=1e-9)
     np.testing.assert_allclose(seq.groundtruth.positions[1], [4.689, -1.787, 0.784])
+
+
+def test_euroc_pairs_cameras_within_a_sync_tolerance(tmp_path):
+    """A software-synced recording: cam1's stamps 1.5 ms after cam0's still pair (nearest
+    first, the frame stamped with cam0's time); 8 ms apart they do not (MAX_SYNC_DT 5 ms)."""
+    seq = open_sequence(make_euroc(tmp_path / "a", cam1_shift_ns=1_500_000))
+    assert len(seq) == 2
+    np.testing.assert_allclose(seq.timestamps[0], 1403636579.813555456, atol=1e-6)
+    assert seq._ns[0] == (1403636579813555456, 1403636579813555456 + 1_500_000)
+    assert seq[1].images[1].shape == (30, 40, 3)
+    with pytest.raises(InputError, match="no images within 5 ms"):
+        open_sequence(make_euroc(tmp_path / "b", cam1_shift_ns=8_000_000))
 
 
 def test_euroc_errors(tmp_path):
@@ -123,8 +135,38 @@ def test_tum_reader(tmp_path):
     assert seq.rig.cameras[0].intrinsics == (517.3, 516.5, 318.6, 255.3)
     f = seq[1]
     np.testing.assert_allclose(f.depths[0], depths[1] / 5000.0, rtol=1e-6)
-    assert seq[2].depths[0] is None
+    # a frame without depth within 20 ms is a dropout (no depth pixel), not a mode switch
+    assert seq.depth_cameras() == [True] and seq[2].depths[0].shape == (480, 640) and not seq[2].depths[0].any()
     assert len(seq.groundtruth) == 1
+
+
+def test_tum_depth_mode_does_not_depend_on_the_first_frame(tmp_path, capsys):
+    """Depth missing on frame 0 only: the sequence still has depth (frame 0 has none of its
+    pixels); depth.txt matching no frame at all: no depth, said once."""
+    root = tmp_path / "rgbd_dataset_freiburg1_a"
+    make_tum(root)
+    lines = (root / "depth.txt").read_text().splitlines()
+    (root / "depth.txt").write_text("\n".join(lines[:1] + lines[2:]) + "\n")  # frame 0's depth gone
+    seq = open_sequence(root)
+    assert seq.depth_cameras() == [True] and not seq[0].depths[0].any() and seq[1].depths[0].any()
+    (root / "depth.txt").write_text("# depth maps\n1.0 depth/none.png\n")
+    seq = open_sequence(root)
+    assert seq.depth_cameras() == [False] and seq[0].depths[0] is None
+    assert "no rgb frame (rgb.txt) has a depth frame" in capsys.readouterr().err
+
+
+def test_tum_time_offset_moves_frames_onto_the_rig_clock(tmp_path):
+    """rig.yaml time_offset (camera clock = rig clock + offset): frame stamps minus the offset,
+    depth still associated on the sensor's own clock."""
+    from mcgs_warp.rig import CameraSpec, Rig, save_rig
+
+    root = tmp_path / "seq"
+    make_tum(root)
+    save_rig(Rig([CameraSpec("rgb", "pinhole", 640, 480, (517.3, 516.5, 318.6, 255.3), time_offset=0.25)]), root / "rig.yaml")
+    seq = open_sequence(root)  # a TUM folder with its own rig.yaml is still TUM
+    assert isinstance(seq, TumSequence)
+    np.testing.assert_allclose(seq.timestamps[0], 1305031102.175304 - 0.25, atol=1e-6)
+    assert seq[1].depths[0].any()
 
 
 def test_tum_needs_a_calibration(tmp_path):

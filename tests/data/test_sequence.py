@@ -54,6 +54,51 @@ def test_folder_round_trip(tmp_path):
         seq[3]
 
 
+def test_metadata_says_what_the_depth_is(tmp_path, capsys):
+    """Depth folders need metadata.yaml (exact and inexact depth run differently, and no
+    default is safe); ``depth: none`` ignores them (said once); ``exact`` without depth is an
+    error; a folder without depth needs no metadata."""
+    rng = np.random.default_rng(3)
+    root = tmp_path / "seq"
+    write_sequence(root, rng)
+    meta = root / "metadata.yaml"
+    assert "depth: exact" in meta.read_text()
+    assert open_sequence(root).depth_cameras() == [True, True]
+    meta.write_text("depth: mono\n")
+    seq = open_sequence(root)
+    assert seq.depth_cameras() == [True, True] and not seq.depth_exact
+    meta.write_text("depth: none\n")
+    seq = open_sequence(root)
+    assert seq.depth_cameras() == [False, False] and seq[0].depths == [None, None]
+    assert "says depth: none, so cam0/depth, cam1/depth is not used" in capsys.readouterr().err
+    meta.unlink()
+    with pytest.raises(InputError, match=r"metadata.yaml: missing: cam0/depth, cam1/depth hold depth; write 'depth: exact'"):
+        open_sequence(root)
+    meta.write_text("{}\n")
+    with pytest.raises(InputError, match=r"metadata.yaml: depth: missing"):
+        open_sequence(root)
+    plain = tmp_path / "plain"
+    write_sequence(plain, rng, depth=False)
+    assert "depth: none" in (plain / "metadata.yaml").read_text()  # the writer says what it wrote
+    (plain / "metadata.yaml").unlink()
+    assert open_sequence(plain).depth_cameras() == [False, False]
+    (plain / "metadata.yaml").write_text("depth: exact\n")
+    with pytest.raises(InputError, match=r"metadata.yaml: depth: says exact, but no cam<i>/depth folder"):
+        open_sequence(plain)
+
+
+def test_folder_time_offset_is_said_to_be_unused(tmp_path, capsys):
+    from mcgs_warp.rig import load_rig, save_rig
+
+    root = tmp_path / "seq"
+    write_sequence(root, np.random.default_rng(4), depth=False)
+    rig = load_rig(root / "rig.yaml")
+    rig.cameras[1].time_offset = 0.003
+    save_rig(rig, root / "rig.yaml")
+    open_sequence(root)
+    assert "time_offset of b is not used" in capsys.readouterr().err
+
+
 def test_missing_frame_wrong_size_and_bad_timestamps(tmp_path):
     rng = np.random.default_rng(1)
     root = tmp_path / "seq"

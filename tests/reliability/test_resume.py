@@ -60,6 +60,11 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     other.mapping.iterations_per_keyframe = 4
     with pytest.raises(InputError, match="another configuration"):
         run_sequence(data, tmp_path / "cut", other, progress=False, resume=True)
+    # one file per mapped keyframe beside the checkpoint (replaced ones are pruned)
+    with np.load(tmp_path / "cut" / "checkpoint.npz") as z:
+        names = set(z["keyframe_files"].tolist())
+        assert len(names) == len(z["mapped_keys"]) >= 3
+    assert {p.name for p in (tmp_path / "cut" / "checkpoint.keyframes").glob("*.npz")} == names
     # the checkpoint's correspondences live beside it: without them resuming is refused, clearly
     assert any((tmp_path / "cut" / "checkpoint.corr").glob("seg_*.npz"))
     shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
@@ -77,3 +82,31 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     np.savez(ckpt, **{k: v for k, v in arrays.items() if k != "exposure"})
     with pytest.raises(InputError, match="no array 'exposure'"):
         run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+
+
+def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypatch):
+    """Each mapped keyframe's depth targets go to a file named by their content: a second
+    checkpoint after one keyframe's targets changed writes that one file, not all of them."""
+    from types import SimpleNamespace
+
+    import mcgs_warp.io as io
+    from mcgs_warp.rig import CameraSpec, Rig
+    from mcgs_warp.system.slam import SLAM
+
+    rig = Rig([CameraSpec("a", "pinhole", 8, 6, (5.0, 5.0, 3.5, 2.5)), CameraSpec("b", "pinhole", 4, 4, (3.0, 3.0, 1.5, 1.5))])
+    rng = np.random.default_rng(0)
+    fake = SimpleNamespace(exact_depth=False, seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), _mapped_depth={})
+    for k in range(5):
+        fake.buf.targets[k] = [rng.random((6, 8)).astype(np.float32), rng.random((4, 4)).astype(np.float32)]
+        fake._mapped_depth[k] = rng.random((2, 3, 4))
+    written, real = [], io.atomic_write
+    monkeypatch.setattr(io, "atomic_write", lambda path, *a, **kw: (written.append(path.name), real(path, *a, **kw))[1])
+    first = SLAM._save_keyframe_files(fake, tmp_path / "kf")
+    assert len(written) == 5 and first == sorted(written)
+    fake.buf.targets[3][1] = fake.buf.targets[3][1] + 1
+    written.clear()
+    second = SLAM._save_keyframe_files(fake, tmp_path / "kf")
+    assert written == [second[3]] and second[3] != first[3] and second[:3] == first[:3]
+    with np.load(tmp_path / "kf" / second[3]) as z:
+        np.testing.assert_array_equal(z["targets_cam1"], fake.buf.targets[3][1])
+        np.testing.assert_array_equal(z["mapped_depth"], fake._mapped_depth[3])

@@ -147,3 +147,17 @@ def test_correspondence_resolution_follows_the_depth_source(sequences):
         assert slam.exact_depth == (mode == "exact")
         assert (slam.flow.dis.getFinestScale(), slam.flow.dis.getPatchSize()) == (finest, patch), mode
         assert slam.guided.dis is slam.flow and slam.selector.flow.dis.getFinestScale() == 1
+
+
+def test_a_run_without_metric_scale_says_so(sequences, capsys):
+    """One camera and no depth: nothing measures metric scale, and the run says so in one
+    line (it is judged by the Sim(3) ATE); the overlapping rig without depth stays quiet."""
+    from mcgs_warp.data import open_sequence
+    from mcgs_warp.data.sequence import CameraSubset
+    from mcgs_warp.system.slam import SLAM
+
+    rig = SLAM(open_sequence(sequences["none"]), RunConfig())
+    assert rig.metric_scale and "monocular" not in capsys.readouterr().err
+    mono = SLAM(CameraSubset(open_sequence(sequences["none"]), [0]), RunConfig())
+    err = capsys.readouterr().err.strip().splitlines()
+    assert not mono.metric_scale and len(err) == 1 and "the run is monocular" in err[0] and "Sim(3) ATE" in err[0], err
