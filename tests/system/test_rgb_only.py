@@ -24,12 +24,12 @@ def short_config(correspondences="estimated"):
 @pytest.fixture(scope="module")
 def sequences(tmp_path_factory):
     root = tmp_path_factory.mktemp("rgb_only")
-    return {m: generate(root / m, n_cameras=3, n_frames=12, seed=0, progress=False, depth=m).root for m in ("none", "exact", "mono")}
+    return {m: generate(root / m, n_cameras=3, n_frames=12, seed=0, progress=False, depth=m).root for m in ("none", "exact")}
 
 
 def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
     """No depth at all: stereo between the overlapping cameras and cross-view MCBA edges
-    carry the metric scale (within 2 %); the trajectory is metric without any scale
+    carry the metric scale; the trajectory is metric without any scale
     alignment, and the run never reads the exact depth of gt/ (only the evaluation does)."""
     from mcgs_warp.data.sequence import FolderSequence
     from mcgs_warp.system.slam import SLAM
@@ -61,27 +61,39 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
     assert m["depth_source"] == "stereo" and m["jdsa"] is True and m["correspondences"] == "estimated"
     assert m["tracking_failures"] == 0 and m["confident_fraction"]["min"] > 0.2, m  # no false alarm on a healthy run
     assert m["prior_jdsa_l1_m"] is not None and m["prior_l1_m"] is not None  # the stereo prior is inexact too
-    assert abs(m["sim3_scale"] - 1) < 0.02, m["sim3_scale"]
-    assert m["ate_se3_rmse_m"] < 0.01 * m["path_length_m"], m  # SE(3): a metric claim
+    # measured: scale 0.9997, SE(3) ATE 0.12 % of the path, depth L1 0.24 m at 98 % coverage
+    assert abs(m["sim3_scale"] - 1) < 0.002, m["sim3_scale"]
+    assert m["ate_se3_rmse_m"] < 0.0025 * m["path_length_m"], m  # SE(3): a metric claim
     # against gt/, which the run never read: real geometry, not a plane at the start depth
     # (which scores above 1.5 m here); the far end of the corridor dominates what is left
-    assert m["depth_l1_m"] < 0.8, m["depth_l1_m"]
+    assert m["depth_l1_m"] < 0.45 and m["depth_coverage"] > 0.9, m
     assert len(list((tmp_path / "run" / "depth").glob("keyframe_*_front.png"))) == m["n_keyframes"]
 
 
-def test_jdsa_rescales_a_monocular_style_prior(sequences, tmp_path):
-    """A folder written by ``synth --depth mono`` is an inexact prior (exact depth times a
-    smooth scale field between 0.8 and 1.25): JDSA's scale grids take most of that error out
-    (metrics.json reports the prior's error before and after them); with JDSA off the prior
-    stays as given. Exact sensor depth has no such prior to report."""
-    on = run_sequence(sequences["mono"], tmp_path / "on", short_config(), progress=False)
-    off = run_sequence(sequences["mono"], tmp_path / "off", short_config(), jdsa=False, progress=False)
+def test_jdsa_on_and_off_where_only_the_prior_carries_the_scale(tmp_path):
+    """The front and back cameras alone (configs/rig_front_back.yaml: no overlap, no rig
+    stereo) with a folder written by ``synth --depth mono`` (exact depth times a smooth scale
+    field between 0.8 and 1.25): only the prior carries the metric scale. JDSA's scale grids
+    take most of the prior's error out (metrics.json reports it before and after them) and
+    the map's depth against gt/ improves; with JDSA off the prior stays as given. Measured:
+    prior 0.48 -> 0.20 m, depth L1 0.157 (on) vs 0.198 m (off); SE(3) ATE 0.39 % (on) vs
+    0.30 % (off) of the path, scale 0.990 vs 0.994: JDSA does not improve the trajectory here."""
+    from importlib import resources
+
+    from mcgs_warp.rig import load_rig
+
+    rig = load_rig(resources.files("mcgs_warp.configs") / "rig_front_back.yaml")
+    data = generate(tmp_path / "fb", n_frames=12, seed=0, progress=False, depth="mono", rig=rig).root
+    on = run_sequence(data, tmp_path / "on", short_config(), progress=False)
+    off = run_sequence(data, tmp_path / "off", short_config(), jdsa=False, progress=False)
     assert on["depth_source"] == off["depth_source"] == "sensor (inexact prior)"
-    assert on["jdsa"] is True and off["jdsa"] is False
-    assert on["prior_l1_m"] > 0.1, on  # the scale field's error is there to remove
+    assert on["jdsa"] is True and off["jdsa"] is False and on["metric_scale"] and off["metric_scale"]
+    assert on["prior_l1_m"] > 0.3, on  # the scale field's error is there to remove
     assert on["prior_jdsa_l1_m"] < 0.6 * on["prior_l1_m"], on
     assert off["prior_jdsa_l1_m"] == pytest.approx(off["prior_l1_m"], rel=1e-6), off  # scale grids stay 1
-    assert abs(on["sim3_scale"] - 1) < 0.03 and on["ate_se3_rmse_m"] < 0.01 * on["path_length_m"], on
+    assert on["depth_l1_m"] < 0.9 * off["depth_l1_m"], (on["depth_l1_m"], off["depth_l1_m"])
+    assert on["ate_se3_rmse_m"] < 0.008 * on["path_length_m"] and abs(on["sim3_scale"] - 1) < 0.02, on
+    assert off["ate_se3_rmse_m"] < 0.006 * off["path_length_m"] and abs(off["sim3_scale"] - 1) < 0.012, off
 
 
 def spy_propagation(monkeypatch, name: str = "propagate_depth") -> list:
