@@ -193,7 +193,7 @@ class FolderSequence(Sequence):
         else:
             kind = read_metadata(self.root)
         if kind == "none" and folders:
-            warn(meta, f"says depth: none, so {', '.join(folders)} is not used")
+            warn(meta, f"says depth: none, so {', '.join(folders)} {'is' if len(folders) == 1 else 'are'} not used")
             self.has_depth = [False] * len(self.has_depth)
         elif kind != "none" and not folders:
             raise InputError(meta, "depth", f"says {kind}, but no cam<i>/depth folder holds depth; say 'depth: none' or add the depth")

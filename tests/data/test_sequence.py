@@ -70,7 +70,7 @@ def test_metadata_says_what_the_depth_is(tmp_path, capsys):
     meta.write_text("depth: none\n")
     seq = open_sequence(root)
     assert seq.depth_cameras() == [False, False] and seq[0].depths == [None, None]
-    assert "says depth: none, so cam0/depth, cam1/depth is not used" in capsys.readouterr().err
+    assert "says depth: none, so cam0/depth, cam1/depth are not used" in capsys.readouterr().err
     meta.unlink()
     with pytest.raises(InputError, match=r"metadata.yaml: missing: cam0/depth, cam1/depth hold depth; write 'depth: exact'"):
         open_sequence(root)
