@@ -66,7 +66,7 @@ def main():
     for n in args.lengths:
         data = out / f"loop_{n}"
         if not (data / "timestamps.txt").is_file():
-            subprocess.run([sys.executable, "-m", "mcgs_warp", "synth", "--out", str(data), "--frames", str(n), "--trajectory", "loop", "--depth", args.depth], check=True, capture_output=True)
+            subprocess.run([sys.executable, "-m", "mcgs_warp", "synth", "--out", str(data), "--frames", str(n), "--trajectory", "loop", "--depth", args.depth, "--realism", "none"], check=True, capture_output=True)
         res = subprocess.run([sys.executable, "-c", CHILD, str(data), str(out / f"run_{n}")], check=True, capture_output=True, text=True)
         m = json.loads(res.stdout.strip().splitlines()[-1])
         rows.append((n, m))

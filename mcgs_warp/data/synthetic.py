@@ -194,7 +194,7 @@ def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.where(valid, blurred * field * noise, 0.0).astype(np.float32)
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None) -> FolderSequence:
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None) -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
     ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
@@ -205,7 +205,14 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     :class:`Trajectory` of body poses (its length sets the frame count). ``rig``:
     cast this rig instead of the built-in one's first ``n_cameras`` (body x forward, y left,
     z up; pixels of a camera without a ray, such as a fisheye's corners beyond 90 degrees,
-    come out black with depth 0)."""
+    come out black with depth 0). ``realism``: ``none`` (the perfect render) or ``camera``
+    (motion blur, vignetting, per-frame gains, noise, JPEG: :mod:`mcgs_warp.data.realism`,
+    settings ``realism_config``, a :class:`~mcgs_warp.data.realism.CameraRealism`; the gains
+    go to ``gt/gains.txt``)."""
+    from .realism import REALISM, CameraRealism, camera_image, gains, image_motion, vignetting
+
+    if realism not in REALISM:
+        raise InputError(None, "--realism", f"expected one of {' | '.join(REALISM)}, got {realism!r}")
     if isinstance(trajectory, Trajectory):
         n_frames = len(trajectory.timestamps)
         if trajectory.poses.shape != (n_frames, 4, 4):
@@ -224,14 +231,34 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     renderer = SceneRenderer(build_scene(seed, device), rig, device=device)
     writer = FolderWriter(out, rig, depth_kind=depth)
     rng = np.random.default_rng(1000 + seed)
+    if realism == "camera":
+        cfg = realism_config or CameraRealism()
+        sensor_rng = np.random.default_rng(2000 + seed)  # its own stream: the depth prior stays as without realism
+        gain = gains(n_frames, len(rig), cfg, sensor_rng)
+        vignettes = [vignetting(c, cfg.vignette) for c in rig.cameras]
+        rays, structs = renderer.centre.numpy(), rig.warp_cameras()
+        T_w_c = rig.camera_poses(traj.poses)  # [K,C,4,4]
     for k in range(n_frames):
         color, exact = renderer.render(traj.poses[k])
         exact = [exact[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
         seen = {"exact": exact, "mono": [mono_like_depth(d, rng) for d in exact], "none": None}[depth]
-        writer.write_frame(k, [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)], seen, gt_depths=exact)
+        images = [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
+        if realism == "camera":
+            nxt = k + 1 if k + 1 < n_frames else k - 1  # the motion around frame k
+            fraction = cfg.exposure_s / (traj.timestamps[nxt] - traj.timestamps[k])  # of the motion to frame nxt (negative: backwards)
+            for i, c in enumerate(rig.cameras):
+                move = image_motion(rays[i, : c.height, : c.width], exact[i], structs[i], np.linalg.inv(T_w_c[nxt, i]) @ T_w_c[k, i])
+                images[i] = camera_image(images[i], fraction * move, vignettes[i], gain[k, i], cfg, sensor_rng)
+        writer.write_frame(k, images, seen, gt_depths=exact)
         if progress and ((k + 1) % 10 == 0 or k + 1 == n_frames):
             print(f"\rsynth: {k + 1}/{n_frames} frames x {len(rig)} cameras", end="", file=sys.stderr, flush=True)
     if progress:
         print(file=sys.stderr)
     writer.finish(traj.timestamps, traj)
+    if realism == "camera":
+        from ..io import atomic_write
+
+        with atomic_write(Path(out) / "gt" / "gains.txt") as f:
+            f.write("# synth --realism camera: auto-exposure gain per frame (rows) and camera (columns): image = gain x render (before vignetting and noise)\n")
+            f.writelines(" ".join(f"{g:.6f}" for g in row) + "\n" for row in gain)
     return FolderSequence(Path(out))
