@@ -20,6 +20,7 @@ import warp as wp
 from ..errors import InputError
 from ..geometry import yaw_pitch_roll
 from ..rig import Rig, load_rig
+from .mono_prior import PRIOR_MODELS, REALISTIC, SMOOTH, mono_like_depth
 from .sequence import FolderSequence, FolderWriter
 from .trajectory import Trajectory
 
@@ -178,27 +179,12 @@ class SceneRenderer:
         return color.numpy(), depth.numpy()
 
 
-def mono_like_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A depth map [H,W] (m) that behaves like a monocular network's: the exact depth with
-    blurred edges, times a smooth random scale field between 0.8 and 1.25 (bilinear over a
-    3x3 grid: smooth enough for a 4x6 JDSA grid to follow closely, not exactly), plus 2 %
-    multiplicative noise."""
-    import cv2
-
-    h, w = depth.shape
-    valid = depth > 0
-    blurred = cv2.GaussianBlur(depth.astype(np.float32), (0, 0), 2.0)
-    coarse = np.exp(rng.uniform(np.log(0.8), np.log(1.25), (3, 3))).astype(np.float32)
-    field = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-    noise = 1.0 + 0.02 * rng.standard_normal((h, w)).astype(np.float32)
-    return np.where(valid, blurred * field * noise, 0.0).astype(np.float32)
-
-
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None) -> FolderSequence:
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth") -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
     ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
-    monocular-style prior, :func:`mono_like_depth`) or ``none`` (no depth folder). The
+    monocular-style prior, :func:`~mcgs_warp.data.mono_prior.mono_like_depth` with the
+    ``mono_prior`` error model, ``smooth`` or ``realistic``) or ``none`` (no depth folder). The
     exact depth always goes to ``gt/cam<i>/depth`` for evaluation; ``metadata.yaml``
     records the kind. ``trajectory``: ``forward`` (down the room with a weave,
     :func:`rig_trajectory`), ``loop`` (one closed loop, :func:`loop_trajectory`) or a
@@ -211,6 +197,9 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     go to ``gt/gains.txt``)."""
     from .realism import REALISM, CameraRealism, camera_image, gains, image_motion, vignetting
 
+    if mono_prior not in PRIOR_MODELS:
+        raise InputError(None, "--mono-prior", f"expected one of {' | '.join(PRIOR_MODELS)}, got {mono_prior!r}")
+    errors = REALISTIC if mono_prior == "realistic" else SMOOTH
     if realism not in REALISM:
         raise InputError(None, "--realism", f"expected one of {' | '.join(REALISM)}, got {realism!r}")
     if isinstance(trajectory, Trajectory):
@@ -241,7 +230,7 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     for k in range(n_frames):
         color, exact = renderer.render(traj.poses[k])
         exact = [exact[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
-        seen = {"exact": exact, "mono": [mono_like_depth(d, rng) for d in exact], "none": None}[depth]
+        seen = {"exact": exact, "mono": [mono_like_depth(d, rng, errors) for d in exact], "none": None}[depth]
         images = [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
         if realism == "camera":
             nxt = k + 1 if k + 1 < n_frames else k - 1  # the motion around frame k
