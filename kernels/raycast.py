@@ -1,13 +1,15 @@
 """Ray casting of a procedural scene: exact colour and depth for synthetic sequences.
 
-The scene is a room (an axis-aligned box seen from inside) holding boxes (rotated
-about the world z axis) and spheres. Surfaces are Lambertian with 3D solid
+The scene is a room (an axis-aligned box seen from inside) or, with ``open_sky``, an
+open ground plane under a sky (the street), holding boxes (rotated about the world z axis)
+and spheres. Surfaces are Lambertian with 3D solid
 textures (value noise in a few octaves, optionally bricks or checkers), so the
 brightness of a point is the same from every camera, as photometric SLAM assumes.
 
 One thread per (camera, pixel). Colour averages ``ss x ss`` sub-pixel rays; depth is
 exact for the pixel-centre ray, in the camera model's convention (``z`` for
-pinhole/fisheye, ray length for equirectangular), 0 where nothing is hit.
+pinhole/fisheye, ray length for equirectangular), 0 where nothing is hit (the sky, whose
+colour fades from ``sky_horizon`` to ``sky_zenith`` with the ray's elevation).
 """
 
 from __future__ import annotations
@@ -38,6 +40,9 @@ class Scene:
     mat_freq: wp.array(dtype=float)  # [M] 1/m, texture frequency
     mat_kind: wp.array(dtype=wp.int32)  # [M] 0 noise, 1 bricks, 2 checker
     light_dir: wp.vec3  # unit, towards the light
+    open_sky: int  # 0: the room's six walls; 1: only its floor (z = room_min z, unbounded), sky above
+    sky_horizon: wp.vec3  # RGB of the sky at the horizon (open_sky)
+    sky_zenith: wp.vec3  # RGB straight up
 
 
 @wp.func
@@ -110,8 +115,10 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
     mat = int(0)
     wall_axis = int(-1)  # the room wall hit, if any: its axis and coordinate
     wall_at = float(0.0)
-    # Room walls, from inside: the first slab plane the ray leaves through.
+    # Room walls, from inside: the first slab plane the ray leaves through (open sky: the floor only).
     for k in range(3):
+        if scene.open_sky != 0 and (k != 2 or d[k] >= 0.0):
+            continue
         if d[k] > 1.0e-12:
             t = (scene.room_max[k] - o[k]) / d[k]
             if t > 0.0 and t < best:
@@ -197,6 +204,9 @@ def intersect_scene(scene: Scene, o: wp.vec3, d: wp.vec3):
 def shade(scene: Scene, o: wp.vec3, d: wp.vec3):
     t, n, m, p = intersect_scene(scene, o, d)
     if t >= NO_HIT:
+        if scene.open_sky != 0:
+            up = wp.max(d[2] / wp.length(d), 0.0)
+            return wp.lerp(scene.sky_horizon, scene.sky_zenith, wp.sqrt(up)), 0.0
         return wp.vec3(0.0), 0.0
     lambert = wp.abs(wp.dot(n, scene.light_dir))
     return albedo(scene, m, p) * (0.45 + 0.55 * lambert), t

@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--frames", type=int, default=40, help="number of frames (default 40, at 10 Hz)")
     synth.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     synth.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
+    synth.add_argument("--scene", choices=("room", "street"), default="room",
+                       help="room (default: the textured room) or street (a road between façades under a sky, depth 2 m to beyond 100 m, "
+                       "10 m/s, with configs/rig_street.yaml: front, front-left, front-right)")
     synth.add_argument("--mono-prior", choices=("realistic", "smooth"), default="realistic",
                        help="with --depth mono, the prior's errors: realistic (default: a smooth scale field, per-object scale, depth-edge bleeding, "
                        "an affine error in inverse depth, a compressed far range) or smooth (the scale field alone, which JDSA's grids represent)")
@@ -106,7 +109,7 @@ def cmd_synth(args) -> int:
     if args.rig is not None and args.cameras is not None:
         raise InputError(None, "--cameras", "takes the built-in rig's first cameras; with --rig, leave it out (the rig file says which cameras)")
     rig = load_rig(args.rig) if args.rig is not None else None
-    seq = generate(args.out, n_cameras=3 if args.cameras is None else args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth, trajectory=args.trajectory, rig=rig, realism=args.realism, mono_prior=args.mono_prior)
+    seq = generate(args.out, n_cameras=3 if args.cameras is None else args.cameras, n_frames=args.frames, seed=args.seed, device=args.device, depth=args.depth, trajectory=args.trajectory, rig=rig, realism=args.realism, mono_prior=args.mono_prior, scene=args.scene)
     prior = f" ({args.mono_prior} errors)" if args.depth == "mono" else ""
     print(f"wrote {len(seq)} frames x {len(seq.rig)} cameras to {args.out} (depth: {args.depth}{prior}, realism: {args.realism})")
     return 0

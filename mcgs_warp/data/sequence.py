@@ -8,7 +8,7 @@ Our folder format::
     rig.yaml                   the rig (mcgs_warp.rig)
     timestamps.txt             one timestamp per frame, seconds, increasing
     cam<i>/rgb/<index>.png     colour, index zero-padded to 6 digits (000000.png)
-    cam<i>/depth/<index>.png   optional: 16-bit depth in millimetres (0 = none)
+    cam<i>/depth/<index>.png   optional: 16-bit depth in millimetres (0 = none; at most 65.535 m)
     groundtruth.txt            optional: rig body poses T_w_b, TUM format
     metadata.yaml              ``depth: exact | mono | none``, required when cam<i>/depth
                                exists: whether it is exact sensor depth, an inexact
@@ -297,8 +297,10 @@ class FolderWriter:
 
 
 def depth_to_mm(depth) -> np.ndarray:
-    """Depth [H,W] in m as our uint16 millimetre PNG values (0 = none)."""
-    return np.clip(np.round(np.asarray(depth) * DEPTH_SCALE_MM), 0, 65535).astype(np.uint16)
+    """Depth [H,W] in m as our uint16 millimetre PNG values (0 = none). Beyond the 65.535 m
+    the format holds there is no depth (0), not a saturated wrong one."""
+    mm = np.round(np.asarray(depth, np.float64) * DEPTH_SCALE_MM)
+    return np.where((mm > 0) & (mm <= 65535), mm, 0).astype(np.uint16)
 
 
 def read_metadata(root: Path) -> str:

@@ -25,13 +25,15 @@ from .sequence import FolderSequence, FolderWriter
 from .trajectory import Trajectory
 
 RIG_CONFIG = "rig_synthetic.yaml"
+STREET_RIG = "rig_street.yaml"
+SCENES = ("room", "street")
 FRAME_RATE = 10.0  # Hz
 SPEED = 1.5  # m/s along x
 
 
-def synthetic_rig(n_cameras: int = 3) -> Rig:
-    """The first ``n_cameras`` cameras of the packaged synthetic rig."""
-    rig = load_rig(resources.files("mcgs_warp.configs") / RIG_CONFIG)
+def synthetic_rig(n_cameras: int = 3, config: str = RIG_CONFIG) -> Rig:
+    """The first ``n_cameras`` cameras of a packaged rig (default the synthetic room's)."""
+    rig = load_rig(resources.files("mcgs_warp.configs") / config)
     if not 1 <= n_cameras <= len(rig):
         raise InputError(None, "--cameras", f"expected 1 to {len(rig)}, got {n_cameras}")
     return rig.subset(range(n_cameras))
@@ -136,6 +138,7 @@ def build_scene(seed: int, device=None):
     s.mat_kind = arr(kind, wp.int32)
     light = np.array([0.3, 0.5, 0.8])
     s.light_dir = wp.vec3(*(light / np.linalg.norm(light)))
+    s.open_sky = 0
     return s
 
 
@@ -179,8 +182,13 @@ class SceneRenderer:
         return color.numpy(), depth.numpy()
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth") -> FolderSequence:
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth", scene: str = "room") -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
+
+    ``scene``: ``room`` (the textured room, this module) or ``street`` (a road between
+    façades under a sky, :mod:`mcgs_warp.data.street`: its own rig, ``configs/rig_street.yaml``,
+    unless ``rig`` is given, and ``n_cameras`` of it; the ``forward`` trajectory drives down
+    the road at 10 m/s).
 
     ``depth``: what ``cam<i>/depth`` holds: ``exact`` (ray-cast depth), ``mono`` (a
     monocular-style prior, :func:`~mcgs_warp.data.mono_prior.mono_like_depth` with the
@@ -210,14 +218,29 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         raise InputError(None, "--frames", f"expected at least 2, got {n_frames}")
     if depth not in ("exact", "mono", "none"):
         raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
+    if scene not in SCENES:
+        raise InputError(None, "--scene", f"expected one of {' | '.join(SCENES)}, got {scene!r}")
+    if scene == "street" and trajectory == "loop":
+        raise InputError(None, "--trajectory", "the street has no loop: use forward")
     if isinstance(trajectory, Trajectory):
         traj = trajectory
     elif trajectory in ("forward", "loop"):
-        traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
+        if scene == "street":
+            from .street import street_trajectory
+
+            traj = street_trajectory(n_frames, FRAME_RATE, seed)
+        else:
+            traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
     else:
         raise InputError(None, "--trajectory", f"expected forward or loop, got {trajectory!r}")
-    rig = synthetic_rig(n_cameras) if rig is None else rig
-    renderer = SceneRenderer(build_scene(seed, device), rig, device=device)
+    rig = synthetic_rig(n_cameras, STREET_RIG if scene == "street" else RIG_CONFIG) if rig is None else rig
+    if scene == "street":
+        from .street import build_street
+
+        world = build_street(seed, device)
+    else:
+        world = build_scene(seed, device)
+    renderer = SceneRenderer(world, rig, device=device)
     writer = FolderWriter(out, rig, depth_kind=depth)
     rng = np.random.default_rng(1000 + seed)
     if realism == "camera":
