@@ -40,9 +40,39 @@ class Scene:
     mat_freq: wp.array(dtype=float)  # [M] 1/m, texture frequency
     mat_kind: wp.array(dtype=wp.int32)  # [M] 0 noise, 1 bricks, 2 checker
     light_dir: wp.vec3  # unit, towards the light
+    ambient: float  # brightness = albedo x (ambient + diffuse |n . light_dir|)
+    diffuse: float
     open_sky: int  # 0: the room's six walls; 1: only its floor (z = room_min z, unbounded), sky above
     sky_horizon: wp.vec3  # RGB of the sky at the horizon (open_sky)
     sky_zenith: wp.vec3  # RGB straight up
+
+
+def make_scene(room_min, room_max, room_materials, boxes, spheres, materials, light_dir, ambient: float, diffuse: float, open_sky: bool = False, sky=((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), device=None) -> Scene:
+    """A :class:`Scene` from host arrays: ``boxes`` = (centres [B,3], half extents [B,3],
+    yaw [B] rad, material [B]), ``spheres`` = (centres [S,3], radii [S], material [S]),
+    ``materials`` = (base [M,3], accent [M,3], frequency [M] 1/m, kind [M]), ``light_dir``
+    [3] (normalized here), ``sky`` = (horizon, zenith) RGB for ``open_sky``."""
+    import numpy as np
+
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a, dtype=np.int32 if dtype is wp.int32 else np.float32), dtype=dtype, device=device)
+
+    s = Scene()
+    s.room_min, s.room_max = wp.vec3(*room_min), wp.vec3(*room_max)
+    s.room_materials = arr(room_materials, wp.int32)
+    centres, halves, yaw, box_mat = boxes
+    s.box_center, s.box_half = arr(centres, wp.vec3), arr(halves, wp.vec3)
+    s.box_rot = arr(np.stack([np.cos(yaw), np.sin(yaw)], 1).reshape(-1, 2), wp.vec2)
+    s.box_material = arr(box_mat, wp.int32)
+    s.sphere_center, s.sphere_radius, s.sphere_material = arr(spheres[0], wp.vec3), arr(spheres[1], float), arr(spheres[2], wp.int32)
+    s.mat_base, s.mat_accent = arr(materials[0], wp.vec3), arr(materials[1], wp.vec3)
+    s.mat_freq, s.mat_kind = arr(materials[2], float), arr(materials[3], wp.int32)
+    light = np.asarray(light_dir, np.float64)
+    s.light_dir = wp.vec3(*(light / np.linalg.norm(light)))
+    s.ambient, s.diffuse = float(ambient), float(diffuse)
+    s.open_sky = int(bool(open_sky))
+    s.sky_horizon, s.sky_zenith = wp.vec3(*sky[0]), wp.vec3(*sky[1])
+    return s
 
 
 @wp.func
@@ -209,7 +239,7 @@ def shade(scene: Scene, o: wp.vec3, d: wp.vec3):
             return wp.lerp(scene.sky_horizon, scene.sky_zenith, wp.sqrt(up)), 0.0
         return wp.vec3(0.0), 0.0
     lambert = wp.abs(wp.dot(n, scene.light_dir))
-    return albedo(scene, m, p) * (0.45 + 0.55 * lambert), t
+    return albedo(scene, m, p) * (scene.ambient + scene.diffuse * lambert), t
 
 
 @wp.kernel

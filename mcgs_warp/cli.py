@@ -39,8 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--frames", type=int, default=40, help="number of frames (default 40, at 10 Hz)")
     synth.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     synth.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
-    synth.add_argument("--scene", choices=("room", "street"), default="room",
-                       help="room (default: the textured room) or street (a road between façades under a sky, depth 2 m to beyond 100 m, "
+    synth.add_argument("--scene", choices=("room", "indoor", "street"), default="room",
+                       help="room (default: the built-in textured room), indoor (a room or corridor, its textures, light and the drive "
+                       "through it all drawn from the seed) or street (a road between façades under a sky, depth 2 m to beyond 100 m, "
                        "10 m/s, with configs/rig_street.yaml: front, front-left, front-right)")
     synth.add_argument("--mono-prior", choices=("realistic", "smooth"), default="realistic",
                        help="with --depth mono, the prior's errors: realistic (default: a smooth scale field, per-object scale, depth-edge bleeding, "

@@ -299,7 +299,7 @@ class FolderWriter:
 def depth_to_mm(depth) -> np.ndarray:
     """Depth [H,W] in m as our uint16 millimetre PNG values (0 = none). Beyond the 65.535 m
     the format holds there is no depth (0), not a saturated wrong one."""
-    mm = np.round(np.asarray(depth, np.float64) * DEPTH_SCALE_MM)
+    mm = np.round(np.asarray(depth) * DEPTH_SCALE_MM)  # in the input's precision, as it always was
     return np.where((mm > 0) & (mm <= 65535), mm, 0).astype(np.uint16)
 
 

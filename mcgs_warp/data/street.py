@@ -11,7 +11,6 @@ cameras whose views overlap a little). Everything but the layout rule is drawn f
 from __future__ import annotations
 
 import numpy as np
-import warp as wp
 
 from ..geometry import yaw_pitch_roll
 from .trajectory import Trajectory
@@ -45,7 +44,7 @@ def street_trajectory(n_frames: int, rate: float = 10.0, seed: int = 0) -> Traje
 
 def build_street(seed: int, device=None):
     """Road, façades, parked cars, poles, trees and materials for ``seed``: the Warp ``Scene``."""
-    from ..kernels.raycast import Scene
+    from ..kernels.raycast import make_scene
 
     rng = np.random.default_rng(seed)
     # materials: 0 road (fine noise), 1 pavement (checker of slabs), then façades, cars, poles, crowns
@@ -105,27 +104,7 @@ def build_street(seed: int, device=None):
                 spheres.append([x, y, 3.0 + r * 0.8]), radii.append(r), sphere_mats.append(crown_mat)
             x += rng.uniform(9.0, 18.0)
 
-    def arr(a, dtype):
-        return wp.array(np.ascontiguousarray(a, dtype=np.float32 if dtype is not wp.int32 else np.int32), dtype=dtype, device=device)
-
-    s = Scene()
-    s.room_min = wp.vec3(ROAD_START, -1.0e4, 0.0)  # with open_sky only its z (the ground) is used
-    s.room_max = wp.vec3(ROAD_END, 1.0e4, 1.0e4)
-    s.room_materials = arr([0, 0, 0, 0, 0, 0], wp.int32)
-    s.box_center = arr(centres, wp.vec3)
-    s.box_half = arr(halves, wp.vec3)
-    s.box_rot = arr(np.stack([np.cos(yaws), np.sin(yaws)], 1), wp.vec2)
-    s.box_material = arr(mats, wp.int32)
-    s.sphere_center = arr(spheres, wp.vec3)
-    s.sphere_radius = arr(radii, float)
-    s.sphere_material = arr(sphere_mats, wp.int32)
-    s.mat_base = arr(base, wp.vec3)
-    s.mat_accent = arr(accent, wp.vec3)
-    s.mat_freq = arr(freq, float)
-    s.mat_kind = arr(kind, wp.int32)
-    sun = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.6, 0.6), rng.uniform(0.5, 1.0)])
-    s.light_dir = wp.vec3(*(sun / np.linalg.norm(sun)))
-    s.open_sky = 1
-    s.sky_horizon = wp.vec3(0.78, 0.84, 0.9)
-    s.sky_zenith = wp.vec3(0.35, 0.55, 0.85)
-    return s
+    sun = (rng.uniform(-0.5, 0.5), rng.uniform(-0.6, 0.6), rng.uniform(0.5, 1.0))
+    ground = (ROAD_START, -1.0e4, 0.0)  # with open_sky only the floor's z (the road) is used
+    return make_scene(ground, (ROAD_END, 1.0e4, 1.0e4), [0] * 6, (centres, halves, np.array(yaws), mats), (np.reshape(spheres, (-1, 3)), radii, sphere_mats), (base, accent, freq, kind), sun, 0.5, 0.5,
+                      open_sky=True, sky=((0.78, 0.84, 0.9), (0.35, 0.55, 0.85)), device=device)

@@ -26,7 +26,7 @@ from .trajectory import Trajectory
 
 RIG_CONFIG = "rig_synthetic.yaml"
 STREET_RIG = "rig_street.yaml"
-SCENES = ("room", "street")
+SCENES = ("room", "indoor", "street")
 FRAME_RATE = 10.0  # Hz
 SPEED = 1.5  # m/s along x
 
@@ -95,7 +95,7 @@ def loop_trajectory(n_frames: int, max_step: float = LOOP_STEP) -> Trajectory:
 
 def build_scene(seed: int, device=None):
     """Room, boxes, spheres and materials for ``seed``; returns the Warp ``Scene`` struct."""
-    from ..kernels.raycast import Scene
+    from ..kernels.raycast import make_scene
 
     rng = np.random.default_rng(seed)
     n_mat = 12
@@ -117,29 +117,11 @@ def build_scene(seed: int, device=None):
     box_c = np.concatenate([box_c, far])
     half = np.concatenate([half, [[0.6, 0.6, 0.6], [0.7, 0.5, 1.0], [0.8, 0.8, 0.8]]])
 
-    def arr(a, dtype):
-        return wp.array(np.ascontiguousarray(a, dtype=np.float32 if dtype is not wp.int32 else np.int32), dtype=dtype, device=device)
-
-    s = Scene()
-    s.room_min = wp.vec3(-3.0, -5.0, 0.0)
-    s.room_max = wp.vec3(30.0, 5.0, 4.0)
-    s.room_materials = arr([1, 1, 1, 1, 0, 2], wp.int32)  # walls, walls, floor, ceiling
-    s.box_center = arr(box_c, wp.vec3)
-    s.box_half = arr(half, wp.vec3)
     yaw = rng.uniform(-0.6, 0.6, len(box_c))
-    s.box_rot = arr(np.stack([np.cos(yaw), np.sin(yaw)], 1), wp.vec2)
-    s.box_material = arr(rng.integers(3, n_mat, len(box_c)), wp.int32)
-    s.sphere_center = arr(sph_c, wp.vec3)
-    s.sphere_radius = arr(sph_r, float)
-    s.sphere_material = arr(rng.integers(3, n_mat, ns), wp.int32)
-    s.mat_base = arr(base, wp.vec3)
-    s.mat_accent = arr(accent, wp.vec3)
-    s.mat_freq = arr(freq, float)
-    s.mat_kind = arr(kind, wp.int32)
-    light = np.array([0.3, 0.5, 0.8])
-    s.light_dir = wp.vec3(*(light / np.linalg.norm(light)))
-    s.open_sky = 0
-    return s
+    box_mat = rng.integers(3, n_mat, len(box_c))
+    sph_mat = rng.integers(3, n_mat, ns)
+    # faces -x, +x, -y, +y: walls; -z: floor; +z: ceiling
+    return make_scene((-3.0, -5.0, 0.0), (30.0, 5.0, 4.0), [1, 1, 1, 1, 0, 2], (box_c, half, yaw, box_mat), (sph_c, sph_r, sph_mat), (base, accent, freq, kind), (0.3, 0.5, 0.8), 0.45, 0.55, device=device)
 
 
 class SceneRenderer:
@@ -185,7 +167,9 @@ class SceneRenderer:
 def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth", scene: str = "room") -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
-    ``scene``: ``room`` (the textured room, this module) or ``street`` (a road between
+    ``scene``: ``room`` (the textured room, this module, the same for every seed but its
+    objects), ``indoor`` (a room or corridor and a drive that vary with the seed,
+    :mod:`mcgs_warp.data.indoor`; ``forward`` is that drive) or ``street`` (a road between
     façades under a sky, :mod:`mcgs_warp.data.street`: its own rig, ``configs/rig_street.yaml``,
     unless ``rig`` is given, and ``n_cameras`` of it; the ``forward`` trajectory drives down
     the road at 10 m/s).
@@ -220,8 +204,8 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         raise InputError(None, "--depth", f"expected exact, mono or none, got {depth!r}")
     if scene not in SCENES:
         raise InputError(None, "--scene", f"expected one of {' | '.join(SCENES)}, got {scene!r}")
-    if scene == "street" and trajectory == "loop":
-        raise InputError(None, "--trajectory", "the street has no loop: use forward")
+    if scene != "room" and trajectory == "loop":
+        raise InputError(None, "--trajectory", f"loop drives the built-in room only (--scene room), not --scene {scene}")
     if isinstance(trajectory, Trajectory):
         traj = trajectory
     elif trajectory in ("forward", "loop"):
@@ -229,6 +213,10 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
             from .street import street_trajectory
 
             traj = street_trajectory(n_frames, FRAME_RATE, seed)
+        elif scene == "indoor":
+            from .indoor import indoor_trajectory
+
+            traj = indoor_trajectory(n_frames, seed, FRAME_RATE)
         else:
             traj = rig_trajectory(n_frames) if trajectory == "forward" else loop_trajectory(n_frames)
     else:
@@ -238,6 +226,10 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         from .street import build_street
 
         world = build_street(seed, device)
+    elif scene == "indoor":
+        from .indoor import build_indoor
+
+        world = build_indoor(seed, device)
     else:
         world = build_scene(seed, device)
     renderer = SceneRenderer(world, rig, device=device)
