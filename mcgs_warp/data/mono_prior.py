@@ -83,7 +83,7 @@ def mono_like_depth(depth: np.ndarray, rng: np.random.Generator, errors: MonoErr
     if errors.bleed_px > 0:
         near = cv2.erode(np.where(valid, exact, np.inf).astype(np.float32), np.ones((2 * errors.bleed_px + 1,) * 2, np.uint8))
         band = cv2.dilate(depth_edges(exact, errors.edge_jump).astype(np.uint8), np.ones((2 * errors.bleed_px + 1,) * 2, np.uint8)) > 0
-        near = np.where(np.isfinite(near), near, exact)
+        near = np.where(np.isfinite(near) & (near < 1e30), near, exact)  # (erode's border value is the largest float)
         out = np.where(band, near * field * noise, out)
     if errors.object_sigma > 0:
         n, labels = cv2.connectedComponents((valid & ~depth_edges(exact, errors.edge_jump)).astype(np.uint8), connectivity=4)

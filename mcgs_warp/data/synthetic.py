@@ -245,7 +245,7 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     for k in range(n_frames):
         color, exact = renderer.render(traj.poses[k])
         exact = [exact[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
-        seen = {"exact": exact, "mono": [mono_like_depth(d, rng, errors) for d in exact], "none": None}[depth]
+        seen = [mono_like_depth(d, rng, errors) for d in exact] if depth == "mono" else exact if depth == "exact" else None
         images = [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
         if realism == "camera":
             nxt = k + 1 if k + 1 < n_frames else k - 1  # the motion around frame k
