@@ -83,7 +83,7 @@ def reset_peak_memory() -> bool:
 def room_problem(n_keyframes: int, radius: int, rng):
     """A loop of ``n_keyframes`` x 3 cameras in a box room with exact correspondences:
     (buffer at the true state, edges [E,5], targets [E,h,w,2], weights [E,h,w])."""
-    from mcgs_warp.ba.graph import build_edges, camera_overlap
+    from mcgs_warp.ba.edges import build_edges, camera_overlap
     from mcgs_warp.buffer import KeyframeBuffer
     from mcgs_warp.data.synthetic import loop_trajectory, synthetic_rig
     from mcgs_warp.kernels import reference

@@ -168,7 +168,7 @@ class GaussianMap:
         """Back-project every ``stride``-th pixel with depth of each camera (``mask[c]``
         [H,W] bool limits to unobserved pixels) into new Gaussians anchored to ``anchor``,
         sized by their footprint (module docstring)."""
-        from ..ba.graph import unproject_pixels
+        from ..ba.edges import unproject_pixels
 
         pts, cols, sizes = [], [], []
         for c, spec in enumerate(rig.cameras):

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..ba.graph import TEMPORAL, FactorGraph, GraphConfig, camera_overlap, camera_pairs, sliding_window
+from ..ba.edges import TEMPORAL, GraphConfig, camera_overlap, camera_pairs, sliding_window
+from ..ba.graph import FactorGraph
 from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcgs_warp.ba.graph import build_edges, camera_overlap
+from mcgs_warp.ba.edges import build_edges, camera_overlap
 from mcgs_warp.buffer import KeyframeBuffer
 from mcgs_warp.frontend.depth import grid_depth
 from mcgs_warp.frontend.flow import GroundTruthFlow

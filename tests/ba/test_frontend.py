@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mcgs_warp.ba.graph import CROSS_TIME, CROSS_VIEW, TEMPORAL, build_edges, camera_overlap
+from mcgs_warp.ba.edges import CROSS_TIME, CROSS_VIEW, TEMPORAL, build_edges, camera_overlap
 from mcgs_warp.frontend.depth import NoDepth, SensorDepth, StereoDepth, choose_prior, grid_depth, upsample_inverse_depth, upsample_inverse_depth_guided
 from mcgs_warp.frontend.flow import DISFlow, GroundTruthFlow
 from mcgs_warp.frontend.keyframes import KeyframeSelector
@@ -222,7 +222,7 @@ def test_edge_graph(synthetic_seq):
 
 
 def test_sliding_window():
-    from mcgs_warp.ba.graph import sliding_window
+    from mcgs_warp.ba.edges import sliding_window
 
     assert sliding_window(3, 8) == [0, 1, 2]
     assert sliding_window(12, 8) == list(range(4, 12))

@@ -10,7 +10,9 @@ itself), so only a loop edge, matched in the images, can see the drift."""
 import numpy as np
 import pytest
 
+from mcgs_warp.ba import edges as E
 from mcgs_warp.ba import graph as G
+from mcgs_warp.ba import loops as L
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
 from mcgs_warp.buffer import KeyframeBuffer
 from mcgs_warp.data.synthetic import generate, loop_trajectory
@@ -58,7 +60,7 @@ class Reprojection:
     """Correspondences that agree with the buffer's current geometry (the drifted odometry)."""
 
     def correspondences(self, buffer, edges):
-        uv, valid, _ = G.reproject(buffer, edges)
+        uv, valid, _ = E.reproject(buffer, edges)
         return uv.astype(np.float32), valid.astype(np.float32)
 
 
@@ -91,7 +93,7 @@ def loop_problem(loop_seq):
     buf = make_buffer(loop_seq, range(len(loop_seq)))
     true = buf.get_poses()
     buf.set_poses(drifted(true))
-    graph = G.FactorGraph(buf, G.camera_overlap(loop_seq.rig, stride=STRIDE))
+    graph = G.FactorGraph(buf, E.camera_overlap(loop_seq.rig, stride=STRIDE))
     graph.update_window(range(len(buf)), cross_time=True, max_gap=4)
     graph.compute(Reprojection())
     return buf, true, graph
@@ -103,12 +105,12 @@ def test_edges_follow_view_overlap_not_index(loop_seq):
     keyframe 1 sees what keyframe 0 sees far ahead, but not the other way round."""
     buf = make_buffer(loop_seq, [0, 14, 39])
     pairs = [(a, c, b, c) for c in range(3) for a, b in [(0, 1), (1, 0), (1, 2), (2, 1), (0, 2), (2, 0)]]
-    ov = G.view_overlap(buf, pairs)[0].reshape(3, 6)
+    ov = E.view_overlap(buf, pairs)[0].reshape(3, 6)
     assert np.all(ov[:, :4].reshape(3, 2, 2).min(-1) < 0.1) and np.all(ov[:, 4:] > 0.3), ov
-    edges = G.overlap_edges(buf, [0, 1, 2], cross_view=False)
+    edges = E.overlap_edges(buf, [0, 1, 2], cross_view=False)
     assert {(int(i), int(j)) for i, _, j, _, _ in edges} == {(0, 2), (2, 0)}, edges
-    assert set(map(int, edges[:, 1])) == {0, 1, 2} and set(map(int, edges[:, 4])) == {G.TEMPORAL}
-    index_pairs = {(int(i), int(j)) for i, _, j, _, _ in G.build_edges([0, 1, 2], 3, radius=1, cross_view=False)}
+    assert set(map(int, edges[:, 1])) == {0, 1, 2} and set(map(int, edges[:, 4])) == {E.TEMPORAL}
+    index_pairs = {(int(i), int(j)) for i, _, j, _, _ in E.build_edges([0, 1, 2], 3, radius=1, cross_view=False)}
     assert index_pairs == {(0, 1), (1, 0), (1, 2), (2, 1)}
 
 
@@ -117,14 +119,14 @@ def test_opposite_views_are_not_linked(loop_seq):
     start's geometrically (the same floor and walls, seen from the other end), but the two
     look in opposite directions and no flow matches them."""
     buf = make_buffer(loop_seq, [0, 20])
-    assert G.view_overlap(buf, [(1, 0, 0, 0), (0, 0, 1, 0)])[0].min() > 0.5
-    assert len(G.overlap_edges(buf, [0, 1], cross_view=False)) == 0
-    assert len(G.overlap_edges(buf, [0, 1], config=G.GraphConfig(max_angle=180.0), cross_view=False)) > 0
+    assert E.view_overlap(buf, [(1, 0, 0, 0), (0, 0, 1, 0)])[0].min() > 0.5
+    assert len(E.overlap_edges(buf, [0, 1], cross_view=False)) == 0
+    assert len(E.overlap_edges(buf, [0, 1], config=E.GraphConfig(max_angle=180.0), cross_view=False)) > 0
 
 
 def test_edge_count_per_view_is_bounded_nearest_first(loop_seq):
     buf = make_buffer(loop_seq, range(6))
-    edges = G.overlap_edges(buf, range(6), config=G.GraphConfig(max_per_view=2), cross_view=False)
+    edges = E.overlap_edges(buf, range(6), config=E.GraphConfig(max_per_view=2), cross_view=False)
     # consecutive keyframes overlap: nearest first, every view takes both neighbours, and
     # only the two end views (one neighbour each) have a slot left for a longer edge
     pairs = {(int(i), int(c), int(j)) for i, c, j, _, _ in edges}
@@ -136,11 +138,11 @@ def test_edge_count_per_view_is_bounded_nearest_first(loop_seq):
 
 def test_add_remove_refresh(loop_seq):
     buf = make_buffer(loop_seq, range(4))
-    g = G.FactorGraph(buf, G.camera_overlap(loop_seq.rig, stride=STRIDE))
+    g = G.FactorGraph(buf, E.camera_overlap(loop_seq.rig, stride=STRIDE))
     prov = Recording()
     e = np.array([(0, 0, 1, 0), (1, 0, 0, 0), (1, 0, 2, 0), (2, 0, 1, 0), (1, 0, 1, 1)], np.int32)
     new = g.add(e)
-    assert len(new) == 5 and list(new[:, 4]) == [G.TEMPORAL] * 4 + [G.CROSS_VIEW]
+    assert len(new) == 5 and list(new[:, 4]) == [E.TEMPORAL] * 4 + [E.CROSS_VIEW]
     assert len(g.add(e[:2])) == 0  # already active
     assert len(g.missing()) == 5
     with pytest.raises(KeyError):
@@ -177,7 +179,7 @@ def test_checkpoint_round_trip(loop_seq, tmp_path):
     buf = make_buffer(loop_seq, range(4))
     g = G.FactorGraph(buf)
     g.add([(0, 0, 1, 0), (1, 0, 0, 0)])
-    g.add([(2, 1, 3, 1, G.LOOP)])
+    g.add([(2, 1, 3, 1, E.LOOP)])
     g.compute(Recording(), [(0, 0, 1, 0), (2, 1, 3, 1)])
     g.remove([(0, 0, 1, 0)])  # stored, with correspondences
     np.savez(tmp_path / "ckpt.npz", **g.state_arrays())
@@ -189,7 +191,7 @@ def test_checkpoint_round_trip(loop_seq, tmp_path):
     for e in [(0, 0, 1, 0), (2, 1, 3, 1)]:
         for a, b in zip(h.correspondences([e]), g.correspondences([e])):
             assert np.array_equal(a, b)
-    assert h.edges[-1, 4] == G.LOOP
+    assert h.edges[-1, 4] == E.LOOP
     assert {tuple(e[:4]) for e, _, _ in h.items()} == {(0, 0, 1, 0), (2, 1, 3, 1)}
 
 
@@ -286,7 +288,7 @@ def test_loop_edge_found_and_global_ba_closes_the_loop(loop_problem):
     T0, disp0 = buf.get_poses(), buf.disp.numpy().copy()
 
     checks = graph.close_loops(GuidedDIS(DISFlow()))
-    loops = graph.edges[graph.edges[:, 4] == G.LOOP]
+    loops = graph.edges[graph.edges[:, 4] == E.LOOP]
     assert any(c.accepted and {c.edge[0], c.edge[2]} == {0, K - 1} for c in checks), checks
     assert all(c.edge[0] - c.edge[2] > graph.cfg.loop_min_gap for c in checks)
     assert len(loops) >= 2 and {(int(i), int(j)) for i, _, j, _, _ in loops} >= {(K - 1, 0), (0, K - 1)}
@@ -296,7 +298,7 @@ def test_loop_edge_found_and_global_ba_closes_the_loop(loop_problem):
     for with_loops in (False, True):
         buf.set_poses(T0)
         buf.disp.assign(disp0)
-        sel = np.ones(len(edges), bool) if with_loops else edges[:, 4] != G.LOOP
+        sel = np.ones(len(edges), bool) if with_loops else edges[:, 4] != E.LOOP
         MCBA(buf, MCBAConfig(iterations=6)).solve(edges[sel], targets[sel], weights[sel], keyframes=list(range(K)))
         errors[with_loops] = end_to_start_error(buf.get_poses(), true)
     buf.set_poses(T0)
@@ -319,7 +321,7 @@ def test_loop_closure_with_estimated_depth(loop_seq):
     far = np.where(np.arange(buf.capacity) >= K - 5, 1 / 1.15, 1.0)[:, None, None, None]
     buf.disp.assign((disp * far * np.exp(0.1 * rng.normal(size=disp.shape))).astype(np.float32))
     buf.set_poses(drifted(true))
-    graph = G.FactorGraph(buf, G.camera_overlap(loop_seq.rig, stride=STRIDE))
+    graph = G.FactorGraph(buf, E.camera_overlap(loop_seq.rig, stride=STRIDE))
     graph.update_window(range(K), cross_time=True, max_gap=4)
     graph.compute(Reprojection())  # the odometry agrees with its own (noisy) geometry
     before = end_to_start_error(buf.get_poses(), true)
@@ -337,19 +339,19 @@ def test_false_loop_candidates_are_rejected(loop_problem):
     K = len(buf)
     cfg, guided = graph.cfg, GuidedDIS(DISFlow())
     T0 = buf.get_poses()
-    cand = G.loop_candidates(buf, config=cfg)
+    cand = L.loop_candidates(buf, config=cfg)
     assert len(cand) and all({int(c[0]), int(c[2])} == {0, K - 1} for c in cand), cand
     # the images of the last keyframe come from the far end of the loop: the poses still
     # say "revisit", the flow finds no consistent match
     images = buf.images[K - 1]
     buf.images[K - 1] = buf.images[K // 2]
     try:
-        edges, _, _, checks = G.confirm_loops(buf, cand, guided, cfg)
+        edges, _, _, checks = L.confirm_loops(buf, cand, guided, cfg)
     finally:
         buf.images[K - 1] = images
     assert len(edges) == 0 and all(c.confident < cfg.loop_min_confident for c in checks), checks
     # a corrupted flow (right images, targets shaken): the two directions disagree
-    edges, _, _, checks = G.confirm_loops(buf, cand, Noisy(guided), cfg)
+    edges, _, _, checks = L.confirm_loops(buf, cand, Noisy(guided), cfg)
     assert len(edges) == 0 and all(c.cycle_px > cfg.loop_max_cycle_px for c in checks), checks
     # the last rig set down at the start but turned around: the front cameras face away
     # (no candidate), the side cameras' images do not match (rejected)
@@ -360,8 +362,8 @@ def test_false_loop_candidates_are_rejected(loop_problem):
     away[K - 1][:3, 3] += [0.2, 0.1, 0.0]
     buf.set_poses(away)
     try:
-        cand = G.loop_candidates(buf, config=cfg)
-        edges, _, _, checks = G.confirm_loops(buf, cand, guided, cfg)
+        cand = L.loop_candidates(buf, config=cfg)
+        edges, _, _, checks = L.confirm_loops(buf, cand, guided, cfg)
     finally:
         buf.set_poses(T0)
     assert not any(c[1] == 0 and c[3] == 0 for c in cand), cand
@@ -420,7 +422,7 @@ def test_refresh_skips_edges_the_geometry_already_explains(loop_seq):
     assert redo == {(1, 0, 2, 0), (2, 0, 1, 0), (2, 0, 3, 0), (3, 0, 2, 0)} == set(Counting.calls)
     buf.set_poses(gt.T_w_b)
     t, w = g.correspondences([(0, 1, 1, 1)])
-    g.set_correspondences(np.array([(0, 1, 1, 1, G.TEMPORAL)], np.int32), t + 2.0 / STRIDE, w)
+    g.set_correspondences(np.array([(0, 1, 1, 1, E.TEMPORAL)], np.int32), t + 2.0 / STRIDE, w)
     assert {tuple(r[:4]) for r in g.refresh(prov, [0])} == {(0, 1, 1, 1)}
 
 
@@ -448,7 +450,7 @@ def test_settled_edges_on_a_rig_with_a_smaller_camera(loop_seq):
         buf.add(k, f.timestamp, images, loop_seq.groundtruth.poses[k], np.where(grid > 0, 1.0 / np.maximum(grid, 1e-6), 0.0))
         depths.append(d)
     assert (buf.h, buf.w) == (loop_seq.rig.cameras[0].height // STRIDE, loop_seq.rig.cameras[0].width // STRIDE)
-    edges = np.array([(0, 0, 1, 0, G.TEMPORAL), (1, 1, 0, 1, G.TEMPORAL), (0, 1, 1, 1, G.TEMPORAL)], np.int32)
+    edges = np.array([(0, 0, 1, 0, E.TEMPORAL), (1, 1, 0, 1, E.TEMPORAL), (0, 1, 1, 1, E.TEMPORAL)], np.int32)
     t, wgt = GroundTruthFlow(depths, buf.get_poses()).correspondences(buf, edges)
     assert (wgt[1:, h // STRIDE :, :] == 0).all() and (wgt[1:] > 0).sum() > 100
     guided = GuidedDIS(DISFlow())

@@ -15,7 +15,7 @@ import pytest
 import scipy.linalg
 import warp as wp
 
-from mcgs_warp.ba.graph import build_edges
+from mcgs_warp.ba.edges import build_edges
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
 from mcgs_warp.geometry import matrix_to_transform7, se3_exp
 from mcgs_warp.kernels.ba import mat66d, mcba_linearize_kernel, vec6d

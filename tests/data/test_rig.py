@@ -70,7 +70,7 @@ def test_bundled_rigs_load_and_overlap_as_their_comments_say(name, stereo):
     """Each rig YAML under configs/ loads, and the rig stereo (cross-view pairs, what
     measures metric depth without a prior) exists exactly where the file says the cameras
     overlap: configs/rig_front_back.yaml is the rig whose scale only a prior carries."""
-    from mcgs_warp.ba.graph import camera_overlap
+    from mcgs_warp.ba.edges import camera_overlap
     from mcgs_warp.frontend.stereo import RigStereo
     from mcgs_warp.system.config import packaged_config
 

@@ -202,7 +202,7 @@ def test_follow_depth_moves_each_gaussian_along_its_camera_ray(mapping_seq):
     Gaussians of other keyframes and ones no camera sees stay put."""
     import warp as wp
 
-    from mcgs_warp.ba.graph import unproject_pixels
+    from mcgs_warp.ba.edges import unproject_pixels
     from mcgs_warp.buffer import KeyframeBuffer
     from mcgs_warp.kernels import reference
 
