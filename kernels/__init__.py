@@ -15,7 +15,9 @@ Modules:
     background  a background at infinity (sky) by world direction, composited through the transmittance, and its adjoint
     splat       Python stages: project, bin_tiles, blend, their backwards, render, render_backward
     ba          MCBA residuals, Jacobians and the sparse Schur reduction (paper eq. 6-10)
-    stereo      sweep stereo for any camera model, left-right check, dense reprojection
+    sweep       plane/sphere-sweep stereo for any camera model, ZNCC costs, left-right check
+    propagation PatchMatch-style depth propagation at known poses, multi-view consistency
+    refine      dense reprojection, image-guided depth upsampling, patch SAD, epipolar point refinement
     losses      mapping losses (exposure, L1 + SSIM, depth, normal) and their gradients
     mapping     Adam, anchored moves (eq. 12-13), scale regularizer
     reference   NumPy float64 brute-force twin used by the tests

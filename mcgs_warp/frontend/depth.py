@@ -148,10 +148,10 @@ def upsample_inverse_depth_guided(disp: np.ndarray, spec, stride: int, image: np
     depth edge stays where the image edge is instead of spreading over a cell as bilinear
     interpolation does. Unlike bilinear interpolation it fills a pixel as soon as one of
     those samples is known; pixels with none get 0. A Warp kernel
-    (:func:`~mcgs_warp.kernels.stereo.guided_upsample_kernel`) on ``device``."""
+    (:func:`~mcgs_warp.kernels.refine.guided_upsample_kernel`) on ``device``."""
     import warp as wp
 
-    from ..kernels.stereo import guided_upsample_kernel
+    from ..kernels.refine import guided_upsample_kernel
 
     device = wp.get_device(device)
     H, W = spec.height, spec.width

@@ -269,7 +269,7 @@ class StereoMatches(FlowProvider):
     along the epipolar curve, left-right checked), weighted by the sweep's confidence.
     The sweep runs at reduced resolution with planes a pixel apart, and a grid pixel reads
     the depth of the sweep pixel it falls in; so each grid pixel's depth is then refined
-    at full resolution at that very pixel (:func:`~mcgs_warp.kernels.stereo.refine_points`,
+    at full resolution at that very pixel (:func:`~mcgs_warp.kernels.refine.refine_points`,
     ``refine_px`` steps of epipolar motion, ``refine_count`` either way, a ZNCC window of
     ``(2 refine_radius + 1)^2`` pixels; count 0: off), and a
     grid pixel whose refinement runs to the end of that range gets no match. (On the
@@ -281,7 +281,7 @@ class StereoMatches(FlowProvider):
         self.refine_px, self.refine_count, self.refine_radius = refine_px, refine_count, refine_radius
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
-        from ..kernels.stereo import refine_points
+        from ..kernels.refine import refine_points
         from .stereo import grey, upsample_nearest
 
         E, s = len(edges), buffer.stride
@@ -344,7 +344,7 @@ class GuidedDIS(FlowProvider):
     rotations and different camera models reduce to a small residual. Confidence: the
     residual's forward-backward consistency times ``exp(-(SAD / photo_sigma)^2)``, the
     7x7 grey-level patch difference at the match, mean removed
-    (:func:`~mcgs_warp.kernels.stereo.patch_sad`), zero where the
+    (:func:`~mcgs_warp.kernels.refine.patch_sad`), zero where the
     prediction leaves view j and on flat patches (:func:`textured`). The photometric factor catches what the consistency check
     cannot: where DIS leaves a wrong prediction in place, both directions agree on it (RGB
     only, built-in sequence: confident temporal matches more than 4 px off 4.8 % -> 0.8 %,
@@ -409,9 +409,9 @@ class GuidedDIS(FlowProvider):
             import cv2
             import warp as wp
 
-            from ..kernels import stereo
+            from ..kernels import refine
 
-            wp.load_module(stereo, device=buffer.device)  # here, not raced by the threads
+            wp.load_module(refine, device=buffer.device)  # here, not raced by the threads
             buffer.full_rays  # made on first use: here too
             threads = cv2.getNumThreads()
             cv2.setNumThreads(1)
@@ -426,7 +426,7 @@ class GuidedDIS(FlowProvider):
         """One edge ``(i, ci, j, cj, ...)``: writes its ``target`` [h,w,2] and ``weight`` [h,w]."""
         import cv2
 
-        from ..kernels.stereo import reproject
+        from ..kernels.refine import reproject
         from .depth import upsample_inverse_depth
 
         s, rig = buffer.stride, buffer.rig
@@ -454,10 +454,10 @@ class GuidedDIS(FlowProvider):
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
         """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel:
         the mean-removed 7x7 patch SAD of view (i, ci) at the grid pixel and view (j, cj) at
-        its target, all edges in one launch (:func:`~mcgs_warp.kernels.stereo.patch_sad`)."""
+        its target, all edges in one launch (:func:`~mcgs_warp.kernels.refine.patch_sad`)."""
         import cv2
 
-        from ..kernels.stereo import patch_sad
+        from ..kernels.refine import patch_sad
 
         weights = weights.copy()
         if len(edges) == 0:

@@ -1,7 +1,7 @@
 """Metric depth from the rig itself: sweep stereo between cameras, behind the
 :class:`~mcgs_warp.frontend.depth.DepthPrior` interface.
 
-Per keyframe and camera ``a`` the reference view is swept (:mod:`mcgs_warp.kernels.stereo`)
+Per keyframe and camera ``a`` the reference view is swept (:mod:`mcgs_warp.kernels.sweep`)
 against every camera ``b`` of the rig whose field of view overlaps ``a``'s at the same
 timestamp (``T_b_a = inv(T_b_c[b]) T_b_c[a]``, known from calibration: the depth is
 metric), at ``1/scale`` resolution, and the two directions are checked against each other
@@ -79,7 +79,7 @@ class RigStereo:
     def __init__(self, rig: Rig, overlap: np.ndarray, config: StereoConfig | None = None, device=None):
         import warp as wp
 
-        from ..kernels.stereo import camera_rays
+        from ..kernels.sweep import camera_rays
 
         self.rig = rig
         self.cfg = cfg = config or StereoConfig()
@@ -97,7 +97,7 @@ class RigStereo:
         """Epipolar motion in view ``b`` per unit of inverse depth of each pixel of view ``a``
         (px per 1/m at sweep resolution, [h,w]; 0 where the ray leaves view b): how well
         that pair measures the pixel's depth, for any camera model."""
-        from ..kernels.stereo import reproject
+        from ..kernels.refine import reproject
 
         h, w = self.specs[a].height, self.specs[a].width
         r1, r2 = 1.0 / 50.0, 1.0 / 10.0
@@ -120,7 +120,7 @@ class RigStereo:
     def hypotheses(self, baseline: float, focal: float, width: int) -> np.ndarray:
         """Inverse-depth hypotheses of a pair (``baseline`` m, ``focal`` and ``width`` in
         sweep-resolution px): ``plane_px`` of epipolar motion apart, at most ``planes``."""
-        from ..kernels.stereo import inverse_depth_hypotheses
+        from ..kernels.sweep import inverse_depth_hypotheses
 
         cfg = self.cfg
         near = self.near(baseline, focal, width)
@@ -131,7 +131,7 @@ class RigStereo:
     def pair_sweeps(self, key, images) -> dict:
         """``{(a, b): SweepResult}`` of every overlapping pair (a swept against b), left-right
         checked; ``key`` identifies the frame for the cache."""
-        from ..kernels.stereo import left_right_check, sweep
+        from ..kernels.sweep import left_right_check, sweep
 
         if key in self._cache:
             return self._cache[key]
@@ -182,7 +182,7 @@ class RigStereo:
         ``sources[c]``, a list of ``(image, T_src_ref)`` (the same camera at other keyframes;
         ``T_src_ref`` 4x4 from the solved poses), taking per pixel the confident estimate with
         the most parallax (:meth:`parallax_rate`)."""
-        from ..kernels.stereo import inverse_depth_hypotheses, sweep
+        from ..kernels.sweep import inverse_depth_hypotheses, sweep
 
         cfg = self.cfg
         depths, confs = [], []

@@ -348,7 +348,7 @@ class SLAM:
 
     def photo_consistent_targets(self, keyframes, radius: int, min_views: int = 0) -> None:
         """Sharpen estimated mapping targets with the solved poses: one PatchMatch-style pass
-        (:func:`~mcgs_warp.kernels.stereo.propagate_depth`) per view against the same camera
+        (:func:`~mcgs_warp.kernels.propagation.propagate_depth`) per view against the same camera
         up to ``radius`` keyframes either side and the rig's overlapping cameras at the same
         time. MCBA's depth lives on a grid of 8 px cells and is upsampled, so depth edges
         spread over a cell and plain surfaces carry the grid's error; each pixel now takes
@@ -356,9 +356,9 @@ class SLAM:
         (at depth edges with colour-adaptive window weights, against foreground fattening).
         Then, with ``min_views`` > 0, a target pixel is kept only where at least that many of
         those views' new targets put the point within 5 % of it
-        (:func:`~mcgs_warp.kernels.stereo.consistent_depth`); the rest get no depth target."""
+        (:func:`~mcgs_warp.kernels.propagation.consistent_depth`); the rest get no depth target."""
         from ..frontend.stereo import grey
-        from ..kernels.stereo import consistent_depth, propagate_depth
+        from ..kernels.propagation import consistent_depth, propagate_depth
 
         buf, rig = self.buf, self.seq.rig
         poses, rays = buf.get_poses(), buf.full_rays

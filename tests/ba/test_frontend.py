@@ -443,7 +443,7 @@ def test_buffer_full_rays_are_each_cameras_pixel_rays(synthetic_seq):
     own unit-depth rays, also through the [c][:h,:w] view the guided flow takes; for pinhole
     cameras OpenCV projects each ray back onto its pixel."""
     from mcgs_warp.buffer import KeyframeBuffer
-    from mcgs_warp.kernels.stereo import camera_rays
+    from mcgs_warp.kernels.sweep import camera_rays
 
     buf = KeyframeBuffer(synthetic_seq.rig, stride=8, capacity=2)
     assert buf.full_rays is buf.full_rays  # made once

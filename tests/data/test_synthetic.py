@@ -207,7 +207,7 @@ def test_cli_synth_casts_a_rig_of_your_own(tmp_path):
     """``synth --rig`` casts the room with the cameras of a rig file (here two 195-degree
     fisheyes, whose corners have no ray: black, depth 0) and writes that rig beside them;
     ``--cameras`` with ``--rig`` is a clear error."""
-    from mcgs_warp.kernels.stereo import camera_rays
+    from mcgs_warp.kernels.sweep import camera_rays
     from mcgs_warp.rig import rig_from_dict, save_rig
 
     fish = dict(model="fisheye", resolution=[96, 80], intrinsics=[36.0, 36.0, 47.5, 39.5], distortion=[0.0034, 0.0007, -0.0017, 0.0003])

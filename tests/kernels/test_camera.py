@@ -7,7 +7,7 @@ import pytest
 from camera_eval import eval_camera
 from warp_devices import devices
 from mcgs_warp.kernels import make_camera, reference
-from mcgs_warp.kernels.stereo import camera_rays
+from mcgs_warp.kernels.sweep import camera_rays
 from scenes import cameras
 
 MODELS = ["pinhole", "fisheye", "equirectangular"]

@@ -1,4 +1,4 @@
-"""Sweep stereo (kernels/stereo.py through mcgs_warp.frontend.stereo) against ray-cast depth,
+"""Sweep stereo (kernels/sweep.py through mcgs_warp.frontend.stereo), its propagation and refinement (kernels/propagation.py, kernels/refine.py) against ray-cast depth,
 for every camera model as the reference view, without rectification."""
 
 import numpy as np
@@ -158,7 +158,8 @@ def test_propagation_moves_a_grid_depth_towards_the_raycast_depth(model):
     change below 0.5 %); pixels without depth stay without, and the pixels around a hole
     keep their depth."""
     from mcgs_warp.frontend.stereo import grey
-    from mcgs_warp.kernels.stereo import camera_rays, propagate_depth
+    from mcgs_warp.kernels.sweep import camera_rays
+    from mcgs_warp.kernels.propagation import propagate_depth
 
     rig, image, gt, sources = five_views(model)
     cams = [c.warp_camera() for c in rig.cameras]
@@ -192,7 +193,9 @@ def test_separable_window_zncc_equals_the_direct_window_sum():
     costs over sources fed one at a time."""
     import warp as wp
 
-    from mcgs_warp.kernels.stereo import NO_COST, window_rows_kernel, window_sums, window_zncc_kernel, zncc_cost_kernel
+    from mcgs_warp.kernels.sweep import NO_COST, zncc_cost_kernel
+
+    from mcgs_warp.kernels.propagation import window_rows_kernel, window_sums, window_zncc_kernel
 
     rng = np.random.default_rng(3)
     S, D, H, W, r = 3, 4, 20, 24, 2
@@ -228,7 +231,8 @@ def test_consistency_drops_depths_the_other_views_do_not_confirm(model):
     cameras 0.6 m back and 0.3 m ahead): in a reference map with a patch pulled 30 % nearer
     and scattered pixels 40 % nearer, for every camera model as the reference, fewer than
     5 % of the wrong depths survive, while most exact depths do (those two sources see)."""
-    from mcgs_warp.kernels.stereo import camera_rays, consistent_depth
+    from mcgs_warp.kernels.sweep import camera_rays
+    from mcgs_warp.kernels.propagation import consistent_depth
 
     rig, _image, gt, sources = five_views(model)
     cams = [c.warp_camera() for c in rig.cameras]
@@ -269,7 +273,8 @@ def test_adaptive_rescoring_undoes_foreground_fattening(model):
     import cv2
 
     from mcgs_warp.frontend.stereo import grey
-    from mcgs_warp.kernels.stereo import camera_rays, propagate_depth
+    from mcgs_warp.kernels.sweep import camera_rays
+    from mcgs_warp.kernels.propagation import propagate_depth
 
     rig, image, gt, sources = five_views(model)
     cams = [c.warp_camera() for c in rig.cameras]
@@ -296,7 +301,7 @@ def test_adaptive_rescoring_undoes_foreground_fattening(model):
 
 
 def _patch_sad_reference(views, va, vb, uv_a, uv_b, radius):
-    """float64 NumPy twin of kernels.stereo.patch_sad (bilinear, border replicated)."""
+    """float64 NumPy twin of kernels.refine.patch_sad (bilinear, border replicated)."""
 
     def sample(img, u, v):
         H, W = img.shape
@@ -318,7 +323,7 @@ def _patch_sad_reference(views, va, vb, uv_a, uv_b, radius):
 def test_patch_sad_matches_a_float64_twin(device):
     """Many matches between views of different sizes in one launch, near and beyond the
     borders (replicated) and with NaN targets, agree with a float64 NumPy twin."""
-    from mcgs_warp.kernels.stereo import patch_sad
+    from mcgs_warp.kernels.refine import patch_sad
 
     rng = np.random.default_rng(0)
     views = [rng.random((40, 50)).astype(np.float32), rng.random((30, 64)).astype(np.float32), rng.random((2, 3)).astype(np.float32)]
@@ -344,7 +349,7 @@ def test_patch_sad_equals_opencv_remap_patches():
     sentinel (-1e4) positions."""
     import cv2
 
-    from mcgs_warp.kernels.stereo import patch_sad
+    from mcgs_warp.kernels.refine import patch_sad
 
     rng = np.random.default_rng(3)
     a = cv2.GaussianBlur(rng.random((48, 64)).astype(np.float32), (0, 0), 1.0)
@@ -369,7 +374,7 @@ def test_patch_sad_is_zero_at_the_true_shift_only():
     (5, 3) px, also 0.1 brighter), clearly above zero 2 px off."""
     import cv2
 
-    from mcgs_warp.kernels.stereo import patch_sad
+    from mcgs_warp.kernels.refine import patch_sad
 
     rng = np.random.default_rng(0)
     a = cv2.cvtColor(cv2.GaussianBlur(rng.random((60, 80, 3)).astype(np.float32), (0, 0), 1.5), cv2.COLOR_RGB2GRAY)
@@ -388,7 +393,8 @@ def test_point_refinement_sharpens_the_sweep_depth_at_full_resolution(model):
     the cross-view matches read), lands closer to the ray-cast depth without a bias; a
     start further off than its search range gets no depth."""
     from mcgs_warp.frontend.stereo import grey
-    from mcgs_warp.kernels.stereo import camera_rays, refine_points
+    from mcgs_warp.kernels.sweep import camera_rays
+    from mcgs_warp.kernels.refine import refine_points
 
     rig = two_camera_rig(model, baseline=0.4)
     T_w_b = np.eye(4)

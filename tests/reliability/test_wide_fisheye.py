@@ -15,7 +15,7 @@ from problems import Problem  # noqa: E402
 
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig  # noqa: E402
 from mcgs_warp.data.synthetic import SceneRenderer, build_scene, rig_trajectory  # noqa: E402
-from mcgs_warp.kernels.stereo import camera_rays  # noqa: E402
+from mcgs_warp.kernels.sweep import camera_rays  # noqa: E402
 from mcgs_warp.mapping.mapper import Mapper, MappingConfig  # noqa: E402
 from mcgs_warp.rig import rig_from_dict  # noqa: E402
 

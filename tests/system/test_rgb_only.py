@@ -97,13 +97,13 @@ def test_jdsa_on_and_off_where_only_the_prior_carries_the_scale(tmp_path):
 
 
 def spy_propagation(monkeypatch, name: str = "propagate_depth") -> list:
-    """Record (pixels changed, pixels with depth) of every call of ``kernels.stereo.<name>``
+    """Record (pixels changed, pixels with depth) of every call of ``kernels.propagation.<name>``
     (``propagate_depth`` or ``consistent_depth``)."""
     import numpy as np
 
-    from mcgs_warp.kernels import stereo
+    from mcgs_warp.kernels import propagation
 
-    calls, real = [], getattr(stereo, name)
+    calls, real = [], getattr(propagation, name)
     at = {"propagate_depth": 2, "consistent_depth": 1}[name]  # position of the depth argument
 
     def spy(*args, **kwargs):
@@ -112,7 +112,7 @@ def spy_propagation(monkeypatch, name: str = "propagate_depth") -> list:
         calls.append((int((out != depth).sum()), int((depth > 0).sum())))
         return out
 
-    monkeypatch.setattr(stereo, name, spy)
+    monkeypatch.setattr(propagation, name, spy)
     return calls
 
 
