@@ -1,0 +1,145 @@
+"""Checkpoints of the online state (``run --resume``): one ``.npz`` per keyframe with the
+small arrays, and beside it the large ones, written only when they change (the factor graph's
+correspondence segments, one content-named file per mapped keyframe's depth targets).
+
+A mixin of :class:`~mcgs_warp.system.slam.SLAM`.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+#: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
+#: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
+#: 5: per-keyframe depth files beside the checkpoint), so that
+#: --resume refuses an older checkpoint by name instead of failing on a missing array.
+CHECKPOINT_FORMAT = 5
+
+
+class Checkpointing:
+    def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
+        """Write the whole online state atomically (``path``: a .npz file). The large parts
+        live beside it and are written only when they change, so a run's checkpoint I/O grows
+        with the keyframes, not with their square: the factor graph's correspondences in
+        segment files (:func:`correspondence_store`), each mapped keyframe's full-resolution
+        depth targets and placement depth in a file named by its content (:func:`keyframe_store`)."""
+        import json
+
+        from ..io import atomic_write
+
+        buf, K = self.buf, len(self.buf)
+        arrays = {f"mapper.{k}": v for k, v in self.mapper.state_arrays().items()}
+        arrays.update(
+            poses=buf.poses.numpy()[:K].copy(),
+            disp=buf.disp.numpy()[:K].copy(),
+            depth_prior=buf.depth_prior[:K].numpy().copy(),
+            prior_conf=buf.prior_conf[:K].numpy().copy(),
+            scales=buf.scales[:K].numpy().copy(),
+            exposure=buf.exposure.numpy()[:K].copy(),
+            timestamps=np.array(buf.timestamps),
+            frame_index=np.array(buf.frame_index, dtype=np.int64),
+            kf_frames=np.array(kf_frames, dtype=np.int64),
+            **self.graph.state_arrays(correspondence_store(path)),
+            mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
+            keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health})),
+        )
+        with atomic_write(path, "wb") as f:
+            np.savez(f, **arrays)
+        self.graph.prune_store(correspondence_store(path))  # segments only the replaced checkpoint used
+        keep = set(arrays["keyframe_files"].tolist())
+        for old in keyframe_store(path).glob("kf*.npz"):
+            if old.name not in keep:
+                old.unlink(missing_ok=True)
+
+    def _save_keyframe_files(self, store: Path) -> list:
+        """One file per mapped keyframe (``kf<k>_<content digest>.npz``: ``targets_cam<c>``,
+        the full-resolution mapping depth targets, none for exact sensor depth, which is
+        re-read; ``mapped_depth`` [C,h,w]); a file already there is not written again."""
+        import hashlib
+
+        from ..io import atomic_write
+
+        store.mkdir(parents=True, exist_ok=True)
+        names = []
+        for k in sorted(self._mapped_depth):
+            arrays = {f"targets_cam{c}": np.asarray(self.buf.targets[k][c] if not self.exact_depth else np.zeros(0), np.float32) for c in range(len(self.seq.rig))}
+            arrays["mapped_depth"] = np.asarray(self._mapped_depth[k], np.float64)
+            digest = hashlib.blake2b(digest_size=10)
+            for v in arrays.values():
+                digest.update(np.ascontiguousarray(v).tobytes())
+            name = f"kf{k:05d}_{digest.hexdigest()}.npz"
+            if not (store / name).is_file():
+                with atomic_write(store / name, "wb") as f:
+                    np.savez(f, **arrays)
+            names.append(name)
+        return names
+
+    def load_checkpoint(self, path) -> tuple[int, list]:
+        """Restore the state saved by :meth:`save_checkpoint`; returns (next frame, keyframe frames)."""
+        import json
+
+        import warp as wp
+
+        from ..errors import InputError
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                a = {k: z[k] for k in z.files}
+            meta = json.loads(str(a["meta"]))
+        except (OSError, ValueError, KeyError) as e:
+            raise InputError(path, None, f"unreadable checkpoint ({e})") from None
+        if meta.get("format") != CHECKPOINT_FORMAT:
+            raise InputError(path, None, f"checkpoint was written by an older version (format {meta.get('format', 1)}, this version reads {CHECKPOINT_FORMAT}); start without --resume")
+        if meta["config"] != self.cfg.to_dict() or meta["n_frames"] != len(self.seq):
+            raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
+        try:  # the format is the current one: a missing array means a damaged file
+            buf = self.buf
+            for k, fi in enumerate(a["frame_index"]):
+                frame = self.seq[int(fi)]
+                buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
+            wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
+            grids = buf.scales.numpy()
+            grids[: len(a["scales"])] = a["scales"]
+            buf.scales.assign(grids)
+            exposure = buf.exposure.numpy()
+            exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
+            buf.exposure.assign(exposure)
+            try:
+                self.graph.load_state_arrays(a, correspondence_store(path))
+            except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
+                raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
+            try:
+                files = {}
+                for k, name in zip(a["mapped_keys"], a["keyframe_files"]):
+                    with np.load(keyframe_store(path) / str(name), allow_pickle=False) as z:
+                        files[int(k)] = {n: z[n] for n in z.files}
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+                raise InputError(keyframe_store(path), None, f"unreadable checkpoint keyframe file ({e}); start without --resume") from None
+            self._mapped_depth = {k: f["mapped_depth"] for k, f in files.items()}
+            if not self.exact_depth:  # estimated targets: restore them as they were
+                depths = {k: [f[f"targets_cam{c}"] for c in range(len(self.seq.rig))] for k, f in files.items()}
+            else:
+                depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
+            self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
+            self.seconds = meta["seconds"]
+            self.health = meta["health"]
+            kf_frames = [int(v) for v in a["kf_frames"]]
+        except KeyError as e:
+            raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None
+        return int(meta["next_frame"]), kf_frames
+
+
+def keyframe_store(checkpoint) -> Path:
+    """The folder beside a checkpoint ``.npz`` that holds its per-keyframe files
+    (``out/checkpoint.npz`` -> ``out/checkpoint.keyframes/``)."""
+    return Path(checkpoint).with_suffix(".keyframes")
+
+
+def correspondence_store(checkpoint) -> Path:
+    """The folder beside a checkpoint ``.npz`` that holds its correspondence segments
+    (``out/checkpoint.npz`` -> ``out/checkpoint.corr/``)."""
+    return Path(checkpoint).with_suffix(".corr")

@@ -1,0 +1,238 @@
+"""The per-keyframe step of the online loop (paper Fig. 3, top): initial pose by constant
+velocity, depth from the prior, MCBA (+ JDSA) over the sliding window on the factor graph's
+edges with correspondences measured and re-measured from the current geometry, the health of
+each solve (and recovery from a failed one), and the mapping depth targets that follow it.
+
+A mixin of :class:`~mcgs_warp.system.slam.SLAM`: it uses the state the pipeline wires up there.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..ba.edges import TEMPORAL, sliding_window
+from ..ba.jdsa import mcba_with_jdsa, scale_field
+from ..frontend.depth import grid_depth, upsample_inverse_depth_guided
+
+log = logging.getLogger("mcgs_warp.slam")
+INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
+
+
+class KeyframeStep:
+    def measure(self, refresh=(), guided_new: bool = False) -> None:
+        """Correspondences for the graph's active edges that have none: cross-view edges from
+        the rig's sweep stereo, the others from DIS; edges touching a keyframe in ``refresh``
+        are re-estimated from the current reprojection (:class:`GuidedDIS`) unless the current
+        geometry already predicts their matches (:meth:`GuidedDIS.settled`); ``guided_new``
+        computes new non-cross-view edges that way from the start (global BA's long edges:
+        their keyframes are already solved, their motion too large for raw DIS), and so does
+        exact sensor depth (its prediction is good from the first solve on). With
+        ``--correspondences ground-truth`` every edge is exact (oracle)."""
+        g = self.graph
+        if self.oracle is None and refresh:
+            g.refresh(self.guided, refresh)
+        missing = g.missing()
+        if not len(missing):
+            return
+        if self.oracle is not None:
+            g.compute(self.oracle, missing)
+            return
+        cross = np.array([i == j and (ci, cj) in self.stereo.pairs for i, ci, j, cj, _ in missing.tolist()], bool)
+        if cross.any():
+            g.compute(self.stereo_matches, missing[cross])
+        if (~cross).any():
+            # with exact depth the constant-velocity start already predicts the flow well: match
+            # around it from the start (the re-matching round then finds these edges settled),
+            # by plain DIS where the start is too poor to guide
+            g.compute(self.guided if guided_new else self.guided_or_raw if self.exact_depth else self.flow, missing[~cross])
+
+    def _solve(self, keyframes, fresh=(), guided_new: bool = False) -> list:
+        """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``
+        outer rounds; between rounds the correspondences of edges touching ``fresh``
+        keyframes follow the new geometry. Anchored Gaussians follow every pose and depth
+        change, and the mapping depth targets are refreshed. Returns each round's
+        ``(MCBAStats, total correspondence weight)``."""
+        rounds = max(1, self.cfg.tracking.flow_rounds)
+        out = []
+        for r in range(rounds):
+            self.measure(refresh=fresh if r > 0 else (), guided_new=guided_new)
+            edges, targets, weights = self.graph.arrays(keyframes)
+            before = self.buf.get_poses()
+            if self.jdsa_active:
+                stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges)[-1]
+            else:
+                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes)
+            out.append((stats, float(np.nansum(weights))))
+            self.mapper.map.follow_keyframes(before, self.buf.get_poses())
+        self._follow_depths(keyframes)
+        return out
+
+    def _confident_fraction(self, k: int) -> float:
+        """Fraction of keyframe ``k``'s grid pixels (all cameras) with a confident (weight >
+        0.5) correspondence to another keyframe."""
+        rows = [n for n, e in enumerate(self.graph.edges) if e[0] == k and e[2] != k]
+        if not rows:
+            return 0.0
+        edges = self.graph.edges[rows]
+        _, w = self.graph.correspondences(edges)
+        linked = np.zeros((len(self.seq.rig), self.buf.h, self.buf.w), bool)
+        for e, wt in zip(edges, w):
+            linked[int(e[1])] |= wt > 0.5
+        area = sum((c.height // self.buf.stride) * (c.width // self.buf.stride) for c in self.seq.rig.cameras)
+        return float(linked.sum()) / max(area, 1)
+
+    def _health(self, k: int, rounds: list) -> str | None:
+        """Why the solve that added keyframe ``k`` is a tracking failure, or None: no MCBA
+        step accepted in any round, too few confident correspondences, or a final robust cost
+        per unit of correspondence weight far above the run's usual level."""
+        th = self.cfg.tracking
+        frac = self._confident_fraction(k)
+        stats, weight = rounds[-1]
+        level = stats.cost[-1] / max(weight, 1e-9) if stats.cost else float("nan")
+        healthy = [h["residual"] for h in self.health if not h["failure"] and np.isfinite(h["residual"])]
+        usual = float(np.median(healthy)) if len(healthy) >= 3 else None
+        why = None
+        if all(st.accepted == 0 for st, _ in rounds) and any(st.cost for st, _ in rounds):
+            why = "no MCBA step accepted"
+        elif frac < th.min_confident:
+            why = f"only {100 * frac:.1f} % of its pixels have a confident correspondence (tracking.min_confident {100 * th.min_confident:g} %)"
+        elif usual is not None and np.isfinite(level) and level > th.max_residual_ratio * usual:
+            why = f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
+        self.health.append({"keyframe": k, "frame": int(self.buf.frame_index[k]), "confident": round(frac, 4), "residual": float(level), "accepted": int(sum(st.accepted for st, _ in rounds)), "failure": why})
+        return why
+
+    def _follow_depths(self, keyframes) -> None:
+        """Eq. 13 per pixel, and fresh mapping targets, for estimated depth: the Gaussians of a
+        mapped keyframe follow MCBA/JDSA's change of its depth along the rays of the camera
+        they were seen from (ratio of new to old grid depth at their pixel, 3x3 median), so a
+        keyframe whose far depth improves takes its Gaussians along; its depth targets become
+        the new estimate. Exact sensor depth is its own target: nothing follows."""
+        if self.exact_depth:
+            return
+        mapped = [k for k in keyframes if k in self.buf.targets]
+        if not mapped:
+            return
+        disp, poses = self.buf.disp.numpy(), self.buf.get_poses()  # read once, not per keyframe
+        weight = self._measured_weight(mapped)
+        for k in mapped:
+            new, old = np.where(disp[k] > 0, 1.0 / np.maximum(disp[k], 1e-12), 0.0), self._mapped_depth[k]
+            ratio = depth_ratio(old, new)
+            self.mapper.map.follow_depth(k, poses[k], self.seq.rig, self.buf.cameras, ratio)
+            # what the Gaussians now stand for: the part of the change the filter or clip held back stays due
+            self._mapped_depth[k] = np.where((old > 0) & (new > 0), old * ratio, new)
+            self.buf.targets[k] = self.mapping_depths(self.seq[self.buf.frame_index[k]], k, disp[k], weight[k])
+
+    def add_keyframe(self, frame) -> int:
+        buf, tc = self.buf, self.cfg.tracking
+        poses = buf.get_poses()
+        if len(buf) == 0:
+            T_init = np.eye(4)  # the world frame is the first rig pose
+        elif len(buf) == 1:
+            T_init = poses[-1]
+        else:
+            T_init = poses[-1] @ np.linalg.inv(poses[-2]) @ poses[-1]  # constant velocity
+        depths, confs = self.prior.with_confidence(frame, self.seq.rig)
+        prior = grid_depth(depths, self.seq.rig, tc.stride, (buf.h, buf.w))
+        conf = grid_depth(confs, self.seq.rig, tc.stride, (buf.h, buf.w))
+        if (prior > 0).any():
+            fill = float(np.median(prior[prior > 0]))
+        elif len(buf):
+            d = buf.depth(len(buf) - 1)
+            fill = float(np.median(d[d > 0])) if (d > 0).any() else INITIAL_DEPTH
+        else:
+            fill = INITIAL_DEPTH
+        disp = np.where(prior > 0, 1.0 / np.maximum(prior, 1e-6), 1.0 / fill).astype(np.float32)
+        k = buf.add(frame.index, frame.timestamp, frame.images, T_init, disp, depth_prior=prior if self.prior.metric else None, prior_conf=conf)
+        if len(buf) > 1:
+            window = sliding_window(len(buf), tc.window)
+            self.graph.update_window(window, cross_view=self.overlap is not None)
+            self._link_newest(k)
+            why = self._health(k, self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :])))
+            if why is not None:
+                self._recover(k, window, T_init, disp, why)
+        return k
+
+    def _recover(self, k: int, window, T_init: np.ndarray, disp0: np.ndarray, why: str) -> None:
+        """A tracking failure at keyframe ``k``: one warning line, then re-initialize it from
+        the constant-velocity prediction (pose ``T_init``, start depth ``disp0``), drop its
+        correspondences and match them again from that prediction (guided by the older
+        keyframes' solved depth, plain DIS where the prediction cannot guide), and solve
+        again. If that fails too, ``k`` keeps the prediction."""
+        from ..data.sequence import warn
+
+        buf = self.buf
+        frame = buf.frame_index[k]
+        buf.set_poses(T_init[None], start=k)
+        buf.disp[k].assign(np.asarray(disp0, dtype=np.float32))
+        own = np.array([e for e in self.graph.edges if (e[0] == k) != (e[2] == k)], np.int32).reshape(-1, 5)  # k's edges to other keyframes
+        self.graph.forget(own)
+        self.graph.add(own)
+        self.graph.compute(self.guided_or_raw, self.graph.missing())
+        second = self._health(k, self._solve(window))
+        if second is None:
+            warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); recovered from the constant-velocity prediction")
+            return
+        buf.set_poses(T_init[None], start=k)
+        warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}; again after re-matching: {second}); keyframe {k} keeps the constant-velocity prediction")
+
+    def _link_newest(self, k: int) -> None:
+        """A new keyframe whose views overlap no one else's by the graph's measure (a fast
+        turn, a poor constant-velocity start) would not be tracked at all: link each of its
+        cameras to the previous keyframe's, as DROID-SLAM always keeps the nearest edge."""
+        linked = {int(ci) for i, ci, j, _cj, _kind in self.graph.edges if i == k and j != k}
+        lonely = [c for c in range(len(self.seq.rig)) if c not in linked]
+        if lonely:
+            self.graph.add([(k, c, k - 1, c, TEMPORAL) for c in lonely] + [(k - 1, c, k, c, TEMPORAL) for c in lonely])
+            log.warning("keyframe %d: camera(s) %s overlap no view of the window; linked to keyframe %d", k, lonely, k - 1)
+
+    def mapping_depths(self, frame, k: int, disp=None, weight=None) -> list:
+        """Full-resolution depth targets for mapping (which also seed its Gaussians): exact
+        sensor depth as is; otherwise the current estimate (MCBA depth where correspondences
+        or a prior constrain it, upsampled guided by the image, which fills up to a grid cell
+        around constrained samples), sharpened by the JDSA-scaled
+        prior where the two agree within 10 %. (Keeping only well-measured pixels as
+        targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
+        import cv2
+
+        if self.exact_depth:
+            return list(frame.depths)
+        buf, s = self.buf, self.buf.stride
+        disp = buf.disp.numpy()[k] if disp is None else disp
+        constrained = self._constrained(k, self._measured_weight([k])[k] if weight is None else weight)
+        depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
+        grids = buf.scales[k].numpy()  # [C,m,n]
+        out = []
+        for c, spec in enumerate(self.seq.rig.cameras):
+            h, w = spec.height // s, spec.width // s
+            full = upsample_inverse_depth_guided(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s, frame.images[c], device=buf.device)
+            if depths[c] is not None:
+                # the JDSA field lives on the buffer's grid (buf.h x buf.w), this camera's part [:h,:w]
+                field = scale_field(grids[c], buf.h, buf.w)[:h, :w].astype(np.float32)
+                scaled = depths[c] * cv2.resize(field, (spec.width, spec.height), interpolation=cv2.INTER_LINEAR)
+                agree = (scaled > 0) & (full > 0) & (np.abs(scaled - full) < 0.1 * full)
+                full = np.where(agree, scaled, full)
+            out.append(full)
+        return out
+
+    def _measured_weight(self, keyframes) -> dict:
+        """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or
+        stored) leaving each of its grid pixels (:meth:`FactorGraph.measured_weight`)."""
+        return {k: self.graph.measured_weight(k, len(self.seq.rig)) for k in set(keyframes)}
+
+    def _constrained(self, k: int, weight: np.ndarray) -> np.ndarray:
+        """[C,h,w] bool: grid pixels of keyframe k whose depth something measured (confident
+        correspondences from the view, ``weight`` from :meth:`_measured_weight`, or a confident prior)."""
+        total = (self.buf.prior_conf[k].numpy() > 0.5) if self.prior.metric else np.zeros(weight.shape, bool)
+        return total | (weight >= 1.0)
+
+
+def depth_ratio(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Per-pixel ``new / old`` [C,h,w] of two grid depths (1 where either is unknown),
+    3x3-median filtered (one noisy pixel moves no Gaussian) and clipped to [0.5, 2]."""
+    import cv2
+
+    ok = (old > 0) & (new > 0)
+    r = np.where(ok, new / np.where(ok, old, 1.0), 1.0).astype(np.float32)
+    return np.clip(np.stack([cv2.medianBlur(x, 3) for x in r]), 0.5, 2.0)
