@@ -14,9 +14,9 @@ import numpy as np
 
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
 #: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
-#: 5: per-keyframe depth files beside the checkpoint), so that
+#: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 5
+CHECKPOINT_FORMAT = 6
 
 
 class Checkpointing:
@@ -45,7 +45,7 @@ class Checkpointing:
             **self.graph.state_arrays(correspondence_store(path)),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "frame_flow": {str(k): v for k, v in self.frame_flow.items()}})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -127,6 +127,7 @@ class Checkpointing:
             self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
             self.seconds = meta["seconds"]
             self.health = meta["health"]
+            self.frame_flow = {int(k): float(v) for k, v in meta["frame_flow"].items()}
             kf_frames = [int(v) for v in a["kf_frames"]]
         except KeyError as e:
             raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None

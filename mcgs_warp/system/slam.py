@@ -104,6 +104,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
+        self.frame_flow: dict = {}  # frame index -> mean flow (rad) from the keyframe before it (the keyframe test's)
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
             from ..data.sequence import warn
@@ -156,9 +157,10 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         for idx in range(start, n):
             frame = self.seq[idx]
             t0 = time.perf_counter()
-            is_kf = last_images is None or idx == n - 1
-            if not is_kf:
-                is_kf, _ = self.selector.is_keyframe(last_images, frame.images)
+            is_kf = last_images is None
+            if not is_kf:  # the mean flow since the last keyframe also places the frames between keyframes
+                is_kf, self.frame_flow[idx] = self.selector.is_keyframe(last_images, frame.images)
+                is_kf = is_kf or idx == n - 1
             if not is_kf:
                 self.seconds["tracking"] += time.perf_counter() - t0
                 self.progress("tracking", idx + 1, n, f"keyframes {len(kf_frames)}")
@@ -191,8 +193,13 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         return RunResult(traj, kf_frames, curve, dict(self.seconds))
 
     def trajectory(self, kf_frames) -> Trajectory:
-        """Rig poses for every frame: keyframes as estimated, others interpolated in time
-        (linear translation, spherical-linear rotation)."""
+        """Rig poses for every frame: keyframes as estimated, others interpolated between
+        their keyframes (linear translation, spherical-linear rotation) in time, except that
+        time the rig stood still does not count: a frame whose mean flow since the earlier
+        keyframe (:attr:`frame_flow`, the keyframe test's) grew by less than a quarter of the
+        interval's average step did not move (:func:`moving_time`). So a pause stands still,
+        and at a constant speed this is plain time interpolation (the flow itself is not
+        proportional to the motion: parallax and rotation add up unevenly)."""
         T_kf = self.buf.get_poses()
         t_kf = np.array(self.buf.timestamps)
         stamps = np.asarray(self.seq.timestamps, dtype=np.float64)
@@ -205,10 +212,32 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
                 continue
             a, b = j - 1, j
             u = float(np.clip((t - t_kf[a]) / max(t_kf[b] - t_kf[a], 1e-12), 0.0, 1.0))
+            fa, fb = self.buf.frame_index[a], self.buf.frame_index[b]
+            if fa < i < fb:
+                clock = moving_time(stamps[fa : fb + 1], [0.0] + [self.frame_flow.get(f) for f in range(fa + 1, fb + 1)])
+                if clock is not None:
+                    u = float(clock[i - fa])
             out[i] = np.eye(4)
             out[i, :3, 3] = (1 - u) * T_kf[a, :3, 3] + u * T_kf[b, :3, 3]
             out[i, :3, :3] = quat_to_matrix(slerp(q_kf[a], q_kf[b], u))
         return Trajectory(stamps, out)
+
+def moving_time(stamps, flows, still: float = 0.25):
+    """Fractions [n] of the time from the first to the last of ``stamps`` [n] that the rig
+    spent moving, per frame, or None (all frames moved: plain time interpolation; a flow is
+    unknown; nothing moved). ``flows`` [n]: mean flow of each frame since the first (0 for
+    it); a frame moved when its flow grew by at least ``still`` times the interval's average
+    step since the frame before."""
+    if any(f is None for f in flows):
+        return None
+    f = np.asarray(flows, np.float64)
+    step = np.diff(f)
+    moved = step >= still * f[-1] / max(len(step), 1)
+    if moved.all() or not moved.any() or f[-1] <= 0:
+        return None
+    clock = np.concatenate([[0.0], np.cumsum(np.where(moved, np.diff(np.asarray(stamps, np.float64)), 0.0))])
+    return clock / clock[-1]
+
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
     d = float(np.dot(q0, q1))
