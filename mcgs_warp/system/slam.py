@@ -196,8 +196,8 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         """Rig poses for every frame: keyframes as estimated, others interpolated between
         their keyframes (linear translation, spherical-linear rotation) in time, except that
         time the rig stood still does not count: a frame whose mean flow since the earlier
-        keyframe (:attr:`frame_flow`, the keyframe test's) grew by less than a quarter of the
-        interval's average step did not move (:func:`moving_time`). So a pause stands still,
+        keyframe (:attr:`frame_flow`, the keyframe test's) grew by less than 0.002 rad and a
+        tenth of the interval's average step did not move (:func:`moving_time`). So a pause stands still,
         and at a constant speed this is plain time interpolation (the flow itself is not
         proportional to the motion: parallax and rotation add up unevenly)."""
         T_kf = self.buf.get_poses()
@@ -222,17 +222,21 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
             out[i, :3, :3] = quat_to_matrix(slerp(q_kf[a], q_kf[b], u))
         return Trajectory(stamps, out)
 
-def moving_time(stamps, flows, still: float = 0.25):
+STILL_FLOW = 0.002  # rad (0.4 px at a 180 px focal length): a frame whose flow grew less did not move
+
+
+def moving_time(stamps, flows, still: float = 0.1, still_flow: float = STILL_FLOW):
     """Fractions [n] of the time from the first to the last of ``stamps`` [n] that the rig
     spent moving, per frame, or None (all frames moved: plain time interpolation; a flow is
-    unknown; nothing moved). ``flows`` [n]: mean flow of each frame since the first (0 for
-    it); a frame moved when its flow grew by at least ``still`` times the interval's average
-    step since the frame before."""
+    unknown; nothing moved). ``flows`` [n]: mean flow (rad) of each frame since the first (0
+    for it); a frame stood still when its flow grew by less than ``still_flow`` and less than
+    ``still`` times the interval's average step since the frame before (both: the mean flow
+    is not proportional to the motion, so a small relative step alone is no pause)."""
     if any(f is None for f in flows):
         return None
     f = np.asarray(flows, np.float64)
     step = np.diff(f)
-    moved = step >= still * f[-1] / max(len(step), 1)
+    moved = (step >= still_flow) | (step >= still * f[-1] / max(len(step), 1))
     if moved.all() or not moved.any() or f[-1] <= 0:
         return None
     clock = np.concatenate([[0.0], np.cumsum(np.where(moved, np.diff(np.asarray(stamps, np.float64)), 0.0))])
