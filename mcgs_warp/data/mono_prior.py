@@ -80,13 +80,14 @@ def mono_like_depth(depth: np.ndarray, rng: np.random.Generator, errors: MonoErr
     field = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
     noise = 1.0 + errors.noise * rng.standard_normal((h, w)).astype(np.float32)
     out = blurred * field * noise
+    edges = depth_edges(exact, errors.edge_jump) if errors.bleed_px > 0 or errors.object_sigma > 0 else None
     if errors.bleed_px > 0:
         near = cv2.erode(np.where(valid, exact, np.inf).astype(np.float32), np.ones((2 * errors.bleed_px + 1,) * 2, np.uint8))
-        band = cv2.dilate(depth_edges(exact, errors.edge_jump).astype(np.uint8), np.ones((2 * errors.bleed_px + 1,) * 2, np.uint8)) > 0
+        band = cv2.dilate(edges.astype(np.uint8), np.ones((2 * errors.bleed_px + 1,) * 2, np.uint8)) > 0
         near = np.where(np.isfinite(near) & (near < 1e30), near, exact)  # (erode's border value is the largest float)
         out = np.where(band, near * field * noise, out)
     if errors.object_sigma > 0:
-        n, labels = cv2.connectedComponents((valid & ~depth_edges(exact, errors.edge_jump)).astype(np.uint8), connectivity=4)
+        n, labels = cv2.connectedComponents((valid & ~edges).astype(np.uint8), connectivity=4)
         scale = np.exp(errors.object_sigma * rng.standard_normal(n)).astype(np.float32)
         sizes = np.bincount(labels.ravel(), minlength=n)
         scale[(sizes < errors.min_object_px) | (np.arange(n) == 0)] = 1.0  # label 0: edges and no depth

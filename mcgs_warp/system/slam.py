@@ -205,6 +205,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         stamps = np.asarray(self.seq.timestamps, dtype=np.float64)
         out = np.zeros((len(stamps), 4, 4))
         q_kf = matrix_to_quat(T_kf[:, :3, :3])
+        clocks: dict = {}
         for i, t in enumerate(stamps):
             j = int(np.clip(np.searchsorted(t_kf, t), 1, max(len(t_kf) - 1, 1))) if len(t_kf) > 1 else 0
             if len(t_kf) == 1:
@@ -214,9 +215,10 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
             u = float(np.clip((t - t_kf[a]) / max(t_kf[b] - t_kf[a], 1e-12), 0.0, 1.0))
             fa, fb = self.buf.frame_index[a], self.buf.frame_index[b]
             if fa < i < fb:
-                clock = moving_time(stamps[fa : fb + 1], [0.0] + [self.frame_flow.get(f) for f in range(fa + 1, fb + 1)])
-                if clock is not None:
-                    u = float(clock[i - fa])
+                if (fa, fb) not in clocks:  # once per keyframe interval
+                    clocks[(fa, fb)] = moving_time(stamps[fa : fb + 1], [0.0] + [self.frame_flow.get(f) for f in range(fa + 1, fb + 1)])
+                if clocks[(fa, fb)] is not None:
+                    u = float(clocks[(fa, fb)][i - fa])
             out[i] = np.eye(4)
             out[i, :3, 3] = (1 - u) * T_kf[a, :3, 3] + u * T_kf[b, :3, 3]
             out[i, :3, :3] = quat_to_matrix(slerp(q_kf[a], q_kf[b], u))

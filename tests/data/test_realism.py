@@ -74,7 +74,7 @@ def test_synth_with_camera_realism(tmp_path):
 
     clean = generate(tmp_path / "clean", n_cameras=2, n_frames=3, seed=5, progress=False)
     real = generate(tmp_path / "real", n_cameras=2, n_frames=3, seed=5, progress=False, realism="camera")
-    again = generate(tmp_path / "again", n_cameras=2, n_frames=3, seed=5, progress=False, realism="camera")
+    generate(tmp_path / "again", n_cameras=2, n_frames=3, seed=5, progress=False, realism="camera")
     gains = np.loadtxt(tmp_path / "real" / "gt" / "gains.txt")
     assert gains.shape == (3, 2) and np.all(np.abs(np.log(gains)) <= 0.3 + 1e-9) and gains.std() > 0.01
     for k in range(3):
