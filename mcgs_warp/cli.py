@@ -65,8 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--depth", choices=DEPTH_KINDS, default="exact", help=DEPTH_HELP)
     demo.set_defaults(func=cmd_demo)
 
-    run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC, KITTI odometry or TUM RGB-D)")
-    run.add_argument("--data", required=True, help="sequence folder")
+    run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC, KITTI odometry or TUM RGB-D) or a ROS bag")
+    run.add_argument("--data", required=True, help="sequence folder, ROS 1 .bag file or ROS 2 bag folder")
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
     run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
@@ -81,7 +81,38 @@ def build_parser() -> argparse.ArgumentParser:
                      "and groundtruth.txt (synthetic sequences), to measure the back end without the front end")
     run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
     run.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
+    calib = run.add_mutually_exclusive_group()
+    calib.add_argument("--rig", default=None, help="rig YAML (or Kalibr camchain): a ROS bag's calibration, each camera with its topic:; "
+                       "for a folder it replaces the folder's calibration (same cameras and resolutions)")
+    calib.add_argument("--from-kalibr", default=None, metavar="CAMCHAIN", help="Kalibr camchain.yaml / camchain-imucam.yaml as the rig (topics from its rostopic:)")
+    run.add_argument("--sync-tolerance", type=float, default=None, metavar="S",
+                     help="ROS bags: images of the cameras within this many seconds are one frame (default 0.005)")
     run.set_defaults(func=cmd_run)
+
+    rg = sub.add_parser("rig", help="convert a Kalibr calibration into a rig YAML",
+                        description="Read a Kalibr camchain.yaml or camchain-imucam.yaml (pinhole-radtan, pinhole-equi) and write our rig YAML: "
+                        "body = IMU when cam0 has T_cam_imu, else cam0; timeshift_cam_imu becomes time_offset; rostopic becomes topic.")
+    rg.add_argument("--from-kalibr", required=True, metavar="CAMCHAIN", help="Kalibr camchain YAML")
+    rg.add_argument("--out", required=True, help="rig YAML to write")
+    rg.set_defaults(func=cmd_rig)
+
+    bg = sub.add_parser("bag", help="write a sequence as a ROS bag (with a rig.yaml naming its topics)",
+                        description="Write any sequence we read (e.g. the synthetic one) as OUT/recording.bag (ROS 1) or OUT/recording/ (ROS 2), "
+                        "one sensor_msgs/Image topic per camera, plus OUT/rig.yaml with the topics and OUT/groundtruth.txt where the sequence has one.")
+    bg.add_argument("--data", required=True, help="sequence folder")
+    bg.add_argument("--out", required=True, help="output folder (must not hold a recording yet)")
+    bg.add_argument("--ros2", action="store_true", help="write a ROS 2 bag (sqlite3) instead of ROS 1")
+    bg.add_argument("--compressed", action="store_true", help="sensor_msgs/CompressedImage (lossless PNG) instead of raw rgb8 Image messages")
+    bg.set_defaults(func=cmd_bag)
+
+    vw = sub.add_parser("view", help="serve an interactive 3D web viewer of a run folder",
+                        description="Serve the run's Gaussians (as splats), keyframe cameras with their images, the trajectory and ground truth "
+                        "on http://HOST:PORT; on a remote machine forward the port (ssh -L 8080:localhost:8080 host) and open it locally.")
+    vw.add_argument("run", help="run folder (map.ply, trajectory.txt, keyframes.txt, rig.yaml)")
+    vw.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    vw.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1: this machine only)")
+    vw.add_argument("--max-gaussians", type=int, default=500_000, help="show at most this many Gaussians, the most opaque (default 500000)")
+    vw.set_defaults(func=cmd_view)
 
     ev = sub.add_parser("eval", help="ATE (Sim(3)-aligned) and RPE of a trajectory against ground truth")
     ev.add_argument("--est", required=True, help="estimated trajectory (TUM format)")
@@ -152,7 +183,12 @@ def parse_cameras(text):
 def cmd_run(args) -> int:
     from .system.run import run_sequence
 
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume)
+    rig = args.rig
+    if args.from_kalibr is not None:
+        from .data.kalibr import rig_from_kalibr
+
+        rig = rig_from_kalibr(args.from_kalibr)
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance)
     print(f"run finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0
@@ -208,6 +244,52 @@ def cmd_export(args) -> int:
     if args.ply:
         write_ply(args.ply, params)
         print(f"wrote {args.ply}")
+    return 0
+
+
+def cmd_rig(args) -> int:
+    import numpy as np
+
+    from .data.kalibr import rig_from_kalibr
+    from .rig import save_rig
+
+    rig = rig_from_kalibr(args.from_kalibr)
+    save_rig(rig, args.out)
+    print(f"wrote {args.out}: {len(rig)} cameras")
+    for c in rig.cameras:
+        t = c.T_b_c[:3, 3]
+        print(f"  {c.name:<8} {c.model:<9} {c.width}x{c.height}  at ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}) m  |t| {np.linalg.norm(t):.4f} m"
+              + (f"  topic {c.topic}" if c.topic else "") + (f"  time_offset {c.time_offset:+.6f} s" if c.time_offset else ""))
+    return 0
+
+
+def cmd_bag(args) -> int:
+    from pathlib import Path
+
+    from .data import open_sequence, write_tum
+    from .data.rosbag import write_bag
+    from .errors import InputError
+    from .rig import save_rig
+
+    out = Path(args.out)
+    bag = out / ("recording" if args.ros2 else "recording.bag")
+    if bag.exists():
+        raise InputError(bag, None, "already exists: choose another --out (a recording is never overwritten)")
+    seq = open_sequence(args.data)
+    out.mkdir(parents=True, exist_ok=True)
+    path, rig = write_bag(seq, bag, ros=2 if args.ros2 else 1, compressed=args.compressed)
+    save_rig(rig, out / "rig.yaml")
+    if seq.groundtruth is not None:
+        write_tum(out / "groundtruth.txt", seq.groundtruth)
+    print(f"wrote {path} ({len(seq)} frames x {len(rig)} cameras) and {out / 'rig.yaml'}")
+    print(f"  run it: mcgs-slam run --data {path} --rig {out / 'rig.yaml'} --out RUN")
+    return 0
+
+
+def cmd_view(args) -> int:
+    from .viewer import serve
+
+    serve(args.run, host=args.host, port=args.port, max_gaussians=args.max_gaussians)
     return 0
 
 

@@ -13,6 +13,7 @@ Format (``configs/rig_*.yaml``)::
           translation: [x, y, z]         # ... or translation (m) + quaternion (x, y, z, w)
           quaternion: [qx, qy, qz, qw]
         time_offset: 0.0                 # s, camera clock = rig clock + time_offset
+        topic: /cam0/image_raw           # optional: the camera's image topic in a ROS bag
 
 Every field is validated; an error names the file, the camera and the field.
 """
@@ -32,7 +33,7 @@ _WARP_CAMERAS: dict = {}  # CameraSpec.warp_camera: parameters -> Camera struct
 
 MODELS = ("pinhole", "fisheye", "equirectangular")
 MAX_DISTORTION = {"pinhole": 5, "fisheye": 4, "equirectangular": 0}
-CAMERA_FIELDS = {"name", "model", "resolution", "intrinsics", "distortion", "T_b_c", "time_offset"}
+CAMERA_FIELDS = {"name", "model", "resolution", "intrinsics", "distortion", "T_b_c", "time_offset", "topic"}
 
 
 @dataclass
@@ -47,6 +48,7 @@ class CameraSpec:
     distortion: tuple[float, ...] = ()
     T_b_c: np.ndarray = field(default_factory=lambda: np.eye(4))  # camera -> body, m
     time_offset: float = 0.0  # s
+    topic: str | None = None  # image topic in a ROS bag (data/rosbag.py)
 
     @property
     def pixels_per_radian(self) -> float:
@@ -99,6 +101,8 @@ class Rig:
                 "quaternion": [float(v) for v in matrix_to_quat(c.T_b_c[:3, :3])],
             }
             d["time_offset"] = float(c.time_offset)
+            if c.topic is not None:
+                d["topic"] = c.topic
             out.append(d)
         return {"cameras": out}
 
@@ -187,7 +191,10 @@ def parse_camera(src, index: int, d) -> CameraSpec:
     dist = tuple(_numbers(src, f"{base}.distortion", d.get("distortion", []), max_count=MAX_DISTORTION[model]))
     T_b_c = parse_pose(src, f"{base}.T_b_c", d["T_b_c"]) if "T_b_c" in d else np.eye(4)
     offset = _number(src, f"{base}.time_offset", d.get("time_offset", 0.0))
-    return CameraSpec(name, model, w, h, intr, dist, T_b_c, offset)
+    topic = d.get("topic")
+    if topic is not None and (not isinstance(topic, str) or not topic.strip()):
+        raise InputError(src, f"{base}.topic", f"expected a ROS topic name like /cam0/image_raw, got {topic!r}")
+    return CameraSpec(name, model, w, h, intr, dist, T_b_c, offset, topic)
 
 
 def rig_from_dict(data, src="<rig>") -> Rig:
@@ -229,6 +236,16 @@ def load_yaml(path):
 def load_rig(path) -> Rig:
     """Read and validate a rig YAML file."""
     return rig_from_dict(load_yaml(path), src=path)
+
+
+def load_any_rig(path) -> Rig:
+    """A rig YAML file, or a Kalibr camchain (recognized by its ``cam0:`` block)."""
+    data = load_yaml(path)
+    if isinstance(data, dict) and "cam0" in data and "cameras" not in data:
+        from .data.kalibr import rig_from_kalibr
+
+        return rig_from_kalibr(path)
+    return rig_from_dict(data, src=path)
 
 
 def save_rig(rig: Rig, path) -> None:

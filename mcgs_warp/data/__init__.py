@@ -1,4 +1,5 @@
-"""Datasets: our folder format, EuRoC (MAV), TUM RGB-D, and the built-in synthetic sequence.
+"""Datasets: our folder format, EuRoC (MAV), KITTI odometry, TUM RGB-D, ROS bags, and the
+built-in synthetic sequence.
 
 :func:`open_sequence` recognizes the folder layout and returns a :class:`Sequence`.
 """
@@ -8,34 +9,64 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
+from .euroc import EurocSequence, is_euroc
+from .kitti import KittiSequence, is_kitti
 from .sequence import Frame, FolderSequence, FolderWriter, Sequence
 from .trajectory import Trajectory, read_tum, write_tum
+from .tum import TumSequence
 
 
-def open_sequence(path, rig_path=None, kitti_cameras: str = "grey") -> Sequence:
-    """Open a sequence folder: ours (``rig.yaml`` + ``timestamps.txt``), EuRoC
-    (``mav0/`` or ``cam0/data.csv``), KITTI odometry (``calib.txt`` + ``image_0/``; the
-    grey pair, or ``kitti_cameras="colour"``) or TUM RGB-D (``rgb.txt``). ``rig_path``
-    overrides the TUM calibration."""
-    from .euroc import EurocSequence, is_euroc
-    from .kitti import KittiSequence, is_kitti
-    from .tum import TumSequence
+def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: float | None = None, rig_source=None) -> Sequence:
+    """Open a sequence: a ROS 1 ``.bag`` or ROS 2 bag folder (needs ``rig``, whose cameras name
+    their ``topic``), or a folder: ours (``rig.yaml`` + ``timestamps.txt``), EuRoC (``mav0/`` or
+    ``cam0/data.csv``), KITTI odometry (``calib.txt`` + ``image_0/``; the grey pair, or
+    ``kitti_cameras="colour"``) or TUM RGB-D (``rgb.txt``). A ``rig`` (:class:`Rig`) given for a
+    folder replaces its calibration: same number of cameras and resolutions. ``sync_tolerance``
+    (s) pairs a bag's cameras; ``rig_source`` names the rig's file in errors."""
+    from .rosbag import BagSequence, bag_paths
+    from .sequence import MAX_SYNC_DT
 
     path = Path(path)
+    if bag_paths(path) is not None:
+        if rig is None:
+            raise InputError(path, None, "a ROS bag carries no calibration: pass --rig RIG.yaml (each camera with its topic:) or --from-kalibr camchain.yaml")
+        return BagSequence(path, rig, MAX_SYNC_DT if sync_tolerance is None else sync_tolerance, rig_source=rig_source)
+    if path.is_file():
+        raise InputError(path, None, "expected a sequence folder or a ROS bag (.bag file, or a ROS 2 bag folder)")
     if not path.is_dir():
         raise InputError(path, None, "data folder not found")
+    if sync_tolerance is not None:
+        raise InputError(None, "--sync-tolerance", "pairs the cameras of a ROS bag; folders have their own pairing")
+    seq = _open_folder(path, kitti_cameras, None)  # the folder's own rig: what a replacement must match
+    if rig is not None:
+        _check_replacement(seq.rig, rig, rig_source)
+        if isinstance(seq, (EurocSequence, TumSequence)):  # their readers pair images with the rig's time offsets
+            seq = _open_folder(path, kitti_cameras, rig)
+        seq.rig = rig
+    return seq
+
+
+def _check_replacement(own, rig, source) -> None:
+    if len(rig) != len(own):
+        raise InputError(source, "cameras", f"expected {len(own)} cameras (the sequence's), got {len(rig)}")
+    for i, (a, b) in enumerate(zip(rig.cameras, own.cameras)):
+        if (a.width, a.height) != (b.width, b.height):
+            raise InputError(source, f"cameras[{i}].resolution", f"expected {b.width}x{b.height} (the sequence's images), got {a.width}x{a.height}")
+
+
+def _open_folder(path: Path, kitti_cameras: str, rig) -> Sequence:
     if (path / "timestamps.txt").is_file() or ((path / "rig.yaml").is_file() and not (path / "rgb.txt").is_file()):  # a TUM folder may hold its rig.yaml
         return FolderSequence(path)
     if is_euroc(path):
-        return EurocSequence(path)
+        return EurocSequence(path, rig)
     if is_kitti(path):
         return KittiSequence(path, kitti_cameras)
     if (path / "rgb.txt").is_file():
-        return TumSequence(path, rig_path)
+        return TumSequence(path, rig)
     if not any(path.iterdir()):
         raise InputError(path, None, "data folder is empty")
     raise InputError(
-        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC), calib.txt + image_0/ (KITTI odometry) or rgb.txt (TUM RGB-D)"
+        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC), calib.txt + image_0/ (KITTI odometry), rgb.txt (TUM RGB-D) or a ROS 2 bag"
     )
 
 

@@ -113,7 +113,9 @@ def read_groundtruth(path: Path) -> Trajectory:
 
 
 class EurocSequence(Sequence):
-    def __init__(self, path):
+    """``rig``, where given, replaces the ``sensor.yaml`` calibrations (its time offsets pair the images)."""
+
+    def __init__(self, path, rig: Rig | None = None):
         self.root = _mav0(Path(path))
         self.name = Path(path).name
         cams, stamps, files = [], [], []
@@ -121,7 +123,7 @@ class EurocSequence(Sequence):
             folder = self.root / f"cam{i}"
             if not folder.is_dir():
                 raise InputError(folder, None, "missing camera folder (EuRoC stereo needs cam0 and cam1)")
-            cams.append(read_sensor(folder / "sensor.yaml", f"cam{i}"))
+            cams.append(read_sensor(folder / "sensor.yaml", f"cam{i}") if rig is None else rig.cameras[i])
             by_stamp = {}
             for lineno, row in read_csv_rows(folder / "data.csv", 2):
                 try:

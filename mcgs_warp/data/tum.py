@@ -66,10 +66,10 @@ def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float = MAX_ASSOCIATION_
 
 
 class TumSequence(Sequence):
-    def __init__(self, path, rig_path=None):
+    def __init__(self, path, rig: Rig | None = None):
         self.root = Path(path)
         self.name = self.root.name
-        self.rig = self._rig(rig_path)
+        self.rig = self._rig() if rig is None else rig
         camera_stamps, self._rgb = read_file_list(self.root / "rgb.txt")
         self.timestamps = camera_stamps - self.rig.cameras[0].time_offset  # rig clock
         self._depth = [None] * len(self.timestamps)
@@ -92,9 +92,7 @@ class TumSequence(Sequence):
         gt = self.root / "groundtruth.txt"
         self.groundtruth = read_tum(gt) if gt.is_file() else None
 
-    def _rig(self, rig_path) -> Rig:
-        if rig_path is not None:
-            return load_rig(rig_path)
+    def _rig(self) -> Rig:
         if (self.root / "rig.yaml").is_file():
             return load_rig(self.root / "rig.yaml")
         for key, (intr, dist) in FREIBURG.items():

@@ -8,6 +8,7 @@ from pathlib import Path
 from ..data import open_sequence
 from ..data.resample import at_processing_resolution
 from ..data.sequence import CameraSubset
+from ..rig import Rig, load_any_rig
 from .config import RunConfig, load_run_config
 from .outputs import write_outputs
 from .slam import SLAM, Progress
@@ -16,10 +17,12 @@ from .slam import SLAM, Progress
 CHECKPOINT = "checkpoint.npz"
 
 
-def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None) -> dict:
-    """Run SLAM on the sequence folder ``data`` and write everything to ``out``; returns the
-    metrics. The online state is checkpointed to ``out/checkpoint.npz`` after every
-    keyframe; ``resume`` continues an interrupted run from it."""
+def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None, rig=None, sync_tolerance: float | None = None) -> dict:
+    """Run SLAM on the sequence ``data`` (a folder or a ROS bag) and write everything to
+    ``out``; returns the metrics. ``rig`` (a :class:`Rig`, or the path of a rig YAML or of a
+    Kalibr camchain) is a bag's calibration, or replaces a folder's. The online state is
+    checkpointed to ``out/checkpoint.npz`` after every keyframe; ``resume`` continues an
+    interrupted run from it."""
     t0 = time.perf_counter()
     cfg = config if isinstance(config, RunConfig) else load_run_config(config)
     if jdsa is not None:
@@ -28,7 +31,11 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
         cfg.tracking.depth = depth
     if correspondences is not None:
         cfg.tracking.correspondences = correspondences
-    seq = open_sequence(data, kitti_cameras=kitti_cameras)
+    rig_source = None
+    if rig is not None and not isinstance(rig, Rig):
+        rig_source = Path(rig)
+        rig = load_any_rig(rig_source)
+    seq = open_sequence(data, rig=rig, kitti_cameras=kitti_cameras, sync_tolerance=sync_tolerance, rig_source=rig_source)
     if cameras is not None:
         seq = CameraSubset(seq, cameras)
     seq = at_processing_resolution(seq, cfg.tracking.max_width)

@@ -77,3 +77,20 @@ def test_dataset_layouts_read_back_and_run(source, layout):
     # measured: SE(3) ATE 0.15 % (EuRoC), 0.16 % (KITTI), 0.21 % (TUM) of the path, scale within 0.3 %
     limit = 0.0045 if layout == "tum" else 0.003
     assert m["ate_se3_rmse_m"] < limit * m["path_length_m"] and abs(m["sim3_scale"] - 1) < 0.005, m
+
+
+def test_bag_of_the_sequence_tracks_as_the_folder(source):
+    """The sequence written as a ROS 1 bag (mcgs-slam bag) and run with its rig gives the
+    trajectory of the folder it came from, run with the same depth (stereo)."""
+    from mcgs_warp.data.rosbag import write_bag
+    from mcgs_warp.data import read_tum
+
+    root, seq = source
+    bag, rig = write_bag(seq, root / "recording.bag")
+    folder = run_sequence(root / "ours", root / "run_folder", run_config(), depth="stereo", progress=False)
+    m = run_sequence(bag, root / "run_bag", run_config(), rig=rig, progress=False)
+    assert m["depth_source"] == "stereo" and m["n_keyframes"] == folder["n_keyframes"] >= 3
+    a, b = read_tum(root / "run_folder" / "trajectory.txt"), read_tum(root / "run_bag" / "trajectory.txt")
+    np.testing.assert_allclose(b.timestamps, a.timestamps, atol=1e-9)
+    np.testing.assert_allclose(b.poses, a.poses, atol=1e-9)
+    assert folder["ate_se3_rmse_m"] < 0.003 * folder["path_length_m"]  # and that trajectory is right
