@@ -4,7 +4,7 @@
         [--modes rgb mono mono-nojdsa exact] [--rigs default] [--realism camera]
         [--room] [--oracle] [--out out/ablation]
 
-For every scene (``synth --scene street | indoor``; no parameter was tuned on these seeds),
+For every scene (``synth --scene street | indoor | room``; no parameter was tuned on these seeds),
 seed and mode it writes the sequence (``--realism camera`` images by default; the mono prior
 with realistic errors) and runs the system with the defaults:
 
@@ -87,7 +87,8 @@ def summary(rows, scene, rig, mode):
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenes", nargs="+", default=["street", "indoor"], choices=["street", "indoor"])
+    parser.add_argument("--scenes", nargs="+", default=["street", "indoor"], choices=["street", "indoor", "room"],
+                        help="street, indoor (worlds drawn from the seed) and room (the built-in room; the seed re-draws its objects)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[11, 12, 13], help="held-out seeds (nothing was tuned on them)")
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--modes", nargs="+", default=["rgb", "mono", "mono-nojdsa", "exact"], choices=list(MODES))

@@ -62,18 +62,20 @@ def atomic_write(path, mode: str = "w", **kwargs):
 
 
 def write_image(path, image: np.ndarray) -> None:
-    """Write a PNG atomically: ``[H,W,3]`` float RGB in [0,1] (8-bit) or ``[H,W]`` uint16."""
+    """Write an image atomically: ``[H,W,3]`` float RGB in [0,1] (8-bit) or ``[H,W]`` uint16;
+    PNG, or JPEG (quality 90) where ``path`` ends in ``.jpg``."""
     import cv2
 
+    jpeg = Path(path).suffix.lower() in (".jpg", ".jpeg")
     if image.dtype == np.uint16:
         data = image
     else:
         data = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
         if data.ndim == 3:
             data = np.ascontiguousarray(data[..., ::-1])  # RGB -> BGR for OpenCV
-    ok, buf = cv2.imencode(".png", data)
+    ok, buf = cv2.imencode(".jpg", data, [cv2.IMWRITE_JPEG_QUALITY, 90]) if jpeg else cv2.imencode(".png", data)
     if not ok:
-        raise OSError(f"{path}: could not encode PNG")
+        raise OSError(f"{path}: could not encode {'JPEG' if jpeg else 'PNG'}")
     with atomic_write(path, "wb") as f:
         f.write(buf.tobytes())
 

@@ -5,7 +5,8 @@
 * ``renders/keyframe_<k>_<camera>.png``: input | render | depth, for a few keyframes, and
   ``renders/frame_<i>_<camera>.png``: input | render of one frame the map was not fitted to
 * ``depth/keyframe_<k>_<camera>.png``: every keyframe view's rendered depth, 16-bit
-  millimetres, 0 = none (what RGB-D datasets use)
+  millimetres, 0 = none (what RGB-D datasets use); ``images/keyframe_<k>_<camera>.jpg``: its
+  input image (what ``mcgs-slam view`` shows in the keyframe's frustum)
 * ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned; over every frame and over keyframes
   only), evo-style RPE and path length when ground truth exists, PSNR, SSIM over the
   keyframe views and over held-out non-keyframe frames, depth L1 and its coverage against
@@ -16,6 +17,8 @@
   it, else the motion's principal plane; estimate vs ground truth, SE(3)-aligned for a run
   with metric scale, else Sim(3)), ``plots/mapping.png``
   (loss and PSNR per mapping iteration)
+* ``groundtruth_in_map.txt``: where ground truth exists, it moved into the map's frame (the
+  inverse of the SE(3) alignment for a run with metric scale, else of the Sim(3) one), TUM
 * ``config.yaml``: the resolved run configuration; ``rig.yaml`` and ``keyframes.txt``
   (keyframe rig poses, TUM) so that ``mcgs-slam export`` can rebuild the USD cameras
 """
@@ -31,7 +34,7 @@ from ..data.sequence import depth_to_mm
 from ..data.trajectory import Trajectory, write_tum
 from ..eval.metrics import psnr, ssim
 from ..eval.plots import plot_mapping, plot_trajectory
-from ..eval.trajectory import evaluate
+from ..eval.trajectory import associate, evaluate, umeyama
 from ..io import atomic_write, write_image
 from ..io.ply import write_ply
 from ..io.usd import write_usd
@@ -45,6 +48,17 @@ def depth_colormap(depth: np.ndarray, vmax: float) -> np.ndarray:
     d = np.clip(depth / max(vmax, 1e-6), 0, 1)
     rgb = cv2.applyColorMap((255 * (1 - d)).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1] / 255.0
     return np.where(depth[..., None] > 0, rgb, 0.0)
+
+
+def groundtruth_in_map(est: Trajectory, gt: Trajectory, with_scale: bool) -> Trajectory:
+    """Ground-truth poses moved into the estimate's (the map's) frame: the inverse of the
+    alignment that maps the estimate onto the ground truth (Umeyama over matched positions)."""
+    i, j = associate(est.timestamps, gt.timestamps)
+    s, R, t = umeyama(est.positions[i], gt.positions[j], with_scale)  # gt ~ s R est + t
+    T = np.array(gt.poses, dtype=np.float64, copy=True)
+    T[:, :3, :3] = R.T @ T[:, :3, :3]
+    T[:, :3, 3] = (T[:, :3, 3] - t) @ R / s
+    return Trajectory(gt.timestamps, T)
 
 
 def keyframe_views(slam):
@@ -162,6 +176,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
             frames = {fidx: seq.gt_depths(fidx)}  # exact depth (evaluation only), loaded once per keyframe
         sensor = frames[fidx][c] if frames[fidx] is not None else None
         write_image(out / "depth" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", depth_to_mm(dep))
+        write_image(out / "images" / f"keyframe_{k:03d}_{rig.cameras[c].name}.jpg", img)
         if sensor is not None:
             ok = (sensor > 0) & (dep > 0)
             covered, with_depth = covered + int(ok.sum()), with_depth + int((sensor > 0).sum())
@@ -220,6 +235,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
         # a run that claims metric scale is judged without rescaling: the plot shows what a user gets
         aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")
+        write_tum(out / "groundtruth_in_map.txt", groundtruth_in_map(traj, seq.groundtruth, with_scale=not slam.metric_scale))
         why = scale_warning(slam.metric_scale, tm.scale)
         if why:
             from ..data.sequence import warn
