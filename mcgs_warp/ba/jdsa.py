@@ -19,6 +19,11 @@ from functools import lru_cache
 
 import numpy as np
 
+#: the range a scale node may take: a prior off by more than 4x either way is not one to rescale.
+#: Without it a node that few weighted pixels see can swing through zero (a negative depth,
+#: which the prior then drops) and the mean-log hold below would divide by log(0).
+SCALE_RANGE = (0.25, 4.0)
+
 
 @lru_cache(maxsize=32)
 def bilinear_basis(m: int, n: int, h: int, w: int) -> np.ndarray:
@@ -135,11 +140,11 @@ def update_scales(buffer, keyframes, stats=None, hold_mean: bool = False, reg: f
     new = old.copy()
     solved = wsum > 0  # [V,C]; a view with no weight (nothing measured) keeps its grid
     for v, c in zip(*np.nonzero(solved)):
-        new[v, c] = tikhonov_solve(AtA[v, c], Atb[v, c], old[v, c], reg).reshape(m, n)
+        new[v, c] = np.clip(tikhonov_solve(AtA[v, c], Atb[v, c], old[v, c], reg).reshape(m, n), *SCALE_RANGE)
     if hold_mean and solved.any():
         # the mean over the grids this fit moved: untouched grids must not dilute the hold
-        shift = np.log(np.maximum(new[solved], 1e-12)).mean() - np.log(np.maximum(old[solved], 1e-12)).mean()
-        new[solved] *= np.exp(-shift)
+        shift = np.log(new[solved]).mean() - np.log(np.clip(old[solved], *SCALE_RANGE)).mean()
+        new[solved] = np.clip(new[solved] * np.exp(-shift), *SCALE_RANGE)
     for v, k in enumerate(fitted):
         if solved[v].any():
             buffer.scales[k].assign(new[v])

@@ -160,3 +160,29 @@ def test_scale_fit_can_hold_the_mean_scale():
     np.testing.assert_allclose(free.scales.numpy()[:2, 0], 1.3 * want[:2], rtol=1e-3)
     np.testing.assert_allclose(held.scales.numpy()[:2, 0], want[:2], rtol=1e-3)  # mean log of (1.25, 0.8) is 0
     assert np.all(free.scales.numpy()[2] == 1.0) and np.all(held.scales.numpy()[2] == 1.0)
+
+
+def test_a_node_few_pixels_see_stays_in_range_and_the_hold_stays_finite():
+    """Seen by a few pixels only, a node's least-squares value can pass through zero: two
+    pixels beside node 1 ask for scales 3 (on it) and 1 (a tenth of a cell from it), which node
+    0 can only meet at -17. Unbounded, the prior there turns negative and is dropped, and the
+    mean-log hold divides every grid by exp(log(0)) (the front + back rig's seed-11 run: scale
+    grids near 2.4 and a Sim(3) scale of 0.63). The nodes stay in SCALE_RANGE and the hold
+    keeps the mean log scale."""
+    from mcgs_warp.ba.jdsa import SCALE_RANGE, update_scales
+
+    h, w = 4, 11
+    true = np.full((1, 1, h, w), 5.0)
+    depth = true.copy()
+    depth[..., 10] = 15.0  # ratio 3 on node 1 (column 10 of 0..10)
+    info = np.zeros((1, 1, h, w))
+    info[..., 9:] = 50.0  # only columns 9 (f = 0.9) and 10 are measured
+    for hold in (False, True):
+        buf = fake_buffer(true, depth, grid=(1, 2))
+        update_scales(buf, [0], window_stats([0], info), hold_mean=hold)
+        s = buf.scales.numpy()[0, 0, 0]
+        assert np.all(np.isfinite(s)) and np.all((s >= SCALE_RANGE[0]) & (s <= SCALE_RANGE[1])), s
+        if hold:
+            assert np.log(s).mean() == pytest.approx(0.0, abs=1e-9)  # the view's mean scale is held
+        else:
+            assert s[0] == SCALE_RANGE[0] and s[1] == pytest.approx(3.0, rel=0.05)
