@@ -8,7 +8,8 @@ it, so a run on a server is viewed through SSH port forwarding. What is shown:
   colours, opacities; the most opaque ``max_gaussians`` where the map holds more;
 * each keyframe camera (``keyframes.txt`` x ``rig.yaml``) as a frustum holding its input image
   (``images/``), coloured per rig camera; clicking one, or choosing it in the panel, looks
-  through it (the camera's pose and vertical field of view);
+  through it (the camera's pose and vertical field of view; its own frustum hidden, so the
+  map's render shows where the image was);
 * the rig's trajectory (``trajectory.txt``, orange) and the ground truth in the map's frame
   (``groundtruth_in_map.txt``, green) where the run had one.
 
@@ -136,9 +137,17 @@ def build_scene(server, scene: RunScene) -> dict:
             handles["lines"].append(server.scene.add_line_segments(name, _polyline(pts), colour, thickness=0.1 * size))
     views = {label: (T, spec) for label, T, spec, _, _ in scene.cameras}
 
+    hidden: list = []  # the frustum of the view looked through: hidden, so the map shows, not its image
+
     def look_through(label: str, clients=None) -> None:
+        frusta = dict(handles["frusta"])
+        for f in hidden:
+            f.visible = show_frusta.value
+        hidden.clear()
         if label not in views:
             return
+        frusta[label].visible = False
+        hidden.append(frusta[label])
         T, spec = views[label]
         for client in (clients or server.get_clients().values()):
             with client.atomic():

@@ -110,8 +110,12 @@ def test_view_serves_the_page_and_the_scene(run_folder):
         assert {"/map", "/trajectory", "/groundtruth", "/keyframes/keyframe_3_left"} <= names, sorted(names)
         frusta = [m for m in msgs if m["type"] == "CameraFrustumMessage"]
         assert all(m["props"]["_image_data"] is not None for m in frusta)  # each keyframe's image in its frustum
-        # choosing a keyframe in the panel moves a connected viewer there: the handle does it for all clients
-        assert callable(handles["look_through"]) and len(handles["frusta"]) == 2 * N_KEYFRAMES
+        # looking through a keyframe hides its own frustum (the map shows), and gives it back after
+        frusta = dict(handles["frusta"])
+        handles["look_through"]("keyframe 2 / left")
+        assert not frusta["keyframe 2 / left"].visible and frusta["keyframe 2 / front"].visible
+        handles["look_through"]("free camera")
+        assert all(f.visible for f in frusta.values())
         with pytest.raises(InputError, match=f"port {port} on 127.0.0.1 is in use"):
             start(run_folder, port=port)
     finally:
