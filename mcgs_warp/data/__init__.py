@@ -37,19 +37,27 @@ def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: f
         raise InputError(path, None, "data folder not found")
     if sync_tolerance is not None:
         raise InputError(None, "--sync-tolerance", "pairs the cameras of a ROS bag; folders have their own pairing")
+    if rig is not None and is_euroc(path) and not (path / "timestamps.txt").is_file():
+        # its reader pairs the cameras with the rig's time offsets: pair with the given rig's
+        from .euroc import _mav0, read_sensor
+
+        own = [read_sensor(_mav0(path) / f"cam{i}" / "sensor.yaml", f"cam{i}") for i in (0, 1)]
+        _check_replacement(own, rig, rig_source)
+        return EurocSequence(path, rig)
     seq = _open_folder(path, kitti_cameras, None)  # the folder's own rig: what a replacement must match
     if rig is not None:
-        _check_replacement(seq.rig, rig, rig_source)
-        if isinstance(seq, (EurocSequence, TumSequence)):  # their readers pair images with the rig's time offsets
-            seq = _open_folder(path, kitti_cameras, rig)
+        _check_replacement(seq.rig.cameras, rig, rig_source)
+        if isinstance(seq, TumSequence):  # its time offset moves the frames onto the ground truth's clock
+            seq = TumSequence(path, rig)
         seq.rig = rig
     return seq
 
 
-def _check_replacement(own, rig, source) -> None:
+def _check_replacement(own: list, rig, source) -> None:
+    """``rig`` may replace the calibration ``own`` (its cameras): as many cameras, same resolutions."""
     if len(rig) != len(own):
         raise InputError(source, "cameras", f"expected {len(own)} cameras (the sequence's), got {len(rig)}")
-    for i, (a, b) in enumerate(zip(rig.cameras, own.cameras)):
+    for i, (a, b) in enumerate(zip(rig.cameras, own)):
         if (a.width, a.height) != (b.width, b.height):
             raise InputError(source, f"cameras[{i}].resolution", f"expected {b.width}x{b.height} (the sequence's images), got {a.width}x{a.height}")
 

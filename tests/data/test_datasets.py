@@ -180,3 +180,23 @@ def test_associate_nearest_within_tolerance():
     a = np.array([0.0, 0.1, 0.2, 0.3])
     b = np.array([0.005, 0.118, 0.26, 0.31])
     assert associate(a, b).tolist() == [0, 1, -1, 3]
+
+
+def test_a_rig_given_for_a_euroc_folder_replaces_its_calibration(tmp_path):
+    """`run --rig` / `--from-kalibr` on a EuRoC folder: the given rig's calibration replaces
+    sensor.yaml's, and its time offsets pair the images (a Kalibr timeshift of 8 ms brings
+    cam1's late stamps back within the 5 ms tolerance); a rig of another shape is refused."""
+    import copy
+
+    root = make_euroc(tmp_path / "seq", cam1_shift_ns=8_000_000)
+    with pytest.raises(InputError, match="no images within 5 ms"):
+        open_sequence(root)
+    rig = copy.deepcopy(EurocSequence(make_euroc(tmp_path / "ref")).rig)
+    rig.cameras[1].time_offset = 0.008  # cam1's clock = rig clock + 8 ms
+    rig.cameras[1].intrinsics = (450.0, 450.0, 20.0, 15.0)
+    seq = open_sequence(root, rig=rig, rig_source="kalibr.yaml")
+    assert len(seq) == 2 and seq.rig.cameras[1].intrinsics == (450.0, 450.0, 20.0, 15.0)
+    small = copy.deepcopy(rig)
+    small.cameras[0].width = 20
+    with pytest.raises(InputError, match=r"kalibr.yaml: cameras\[0\].resolution: expected 40x30"):
+        open_sequence(make_euroc(tmp_path / "c"), rig=small, rig_source="kalibr.yaml")
