@@ -71,15 +71,24 @@ def main(argv=None) -> int:
     from mcgs_warp.io import write_image
     from mcgs_warp.viewer import load_run, start, stop
 
-    width, height = (int(v) for v in args.size.lower().split("x"))
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+        assert width > 0 and height > 0
+    except (ValueError, AssertionError):
+        parser.error(f"--size: expected WIDTHxHEIGHT like 1280x800, got {args.size!r}")
+    scene = load_run(args.run, max_gaussians=1)  # errors name the file before anything starts
+    if args.keyframe and args.keyframe not in [label for label, *_ in scene.cameras]:
+        labels = [label for label, *_ in scene.cameras]
+        parser.error(f"--keyframe: expected a view like {labels[0]!r}, got {args.keyframe!r}" if labels else "--keyframe: the run has no keyframe cameras")
     port = free_port()
     server, handles = start(args.run, port=port)
     profile = tempfile.mkdtemp(prefix="mcgs-chromium-")
     flags = ["--headless=new", "--no-sandbox", "--no-first-run", "--disable-background-networking", "--disable-component-update",
              "--disable-sync", "--disable-quic", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
              f"--window-size={width},{height}", f"--user-data-dir={profile}", f"http://127.0.0.1:{port}/"]
-    browser = subprocess.Popen([chromium, *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    browser = None
     try:
+        browser = subprocess.Popen([chromium, *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         end = time.time() + args.timeout
         while not server.get_clients() and time.time() < end:
             if browser.poll() is not None:
@@ -95,8 +104,8 @@ def main(argv=None) -> int:
         if args.keyframe:
             handles["look_through"](args.keyframe, [client])
         else:
-            eye, target = overview_pose(load_run(args.run, max_gaussians=1))
-            client.camera.up_direction = tuple(load_run(args.run, max_gaussians=1).up)
+            eye, target = overview_pose(scene)
+            client.camera.up_direction = tuple(scene.up)
             client.camera.position = eye
             client.camera.look_at = target
         time.sleep(3.0)
@@ -105,14 +114,21 @@ def main(argv=None) -> int:
         print(f"wrote {args.out} ({width}x{height}) from {chromium}")
         return 0
     finally:
-        browser.terminate()
-        try:
-            browser.wait(10)
-        except subprocess.TimeoutExpired:
-            browser.kill()
+        if browser is not None:
+            browser.terminate()
+            try:
+                browser.wait(10)
+            except subprocess.TimeoutExpired:
+                browser.kill()
         stop(server)
         shutil.rmtree(profile, ignore_errors=True)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from mcgs_warp.errors import InputError
+
+    try:
+        sys.exit(main())
+    except InputError as e:  # a missing or broken run folder: one line, as the command line says it
+        print(f"view_screenshot: error: {e}", file=sys.stderr)
+        sys.exit(2)

@@ -187,7 +187,8 @@ def cmd_run(args) -> int:
     if args.from_kalibr is not None:
         from .data.kalibr import rig_from_kalibr
 
-        rig = rig_from_kalibr(args.from_kalibr)
+        rig_from_kalibr(args.from_kalibr)  # refuses a file that is not a camchain
+        rig = args.from_kalibr  # run_sequence reads it again, and names it in its errors
     metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance)
     print(f"run finished; outputs in {args.out}")
     _print_metrics(metrics)

@@ -183,14 +183,21 @@ def start(run, host: str = "127.0.0.1", port: int = 8080, max_gaussians: int = 5
 
     if max_gaussians < 1:
         raise InputError(None, "--max-gaussians", f"expected at least 1, got {max_gaussians}")
+    if not 1 <= int(port) <= 65535:
+        raise InputError(None, "--port", f"expected a port in 1-65535, got {port}")
     scene = load_run(run, max_gaussians)
+    import socket
+
+    try:  # viser binds in a thread and moves on to another port on failure: ask first
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+            probe.bind((host, int(port)))
+    except OSError as e:
+        raise InputError(None, "--port" if e.errno in (98, 48, 10048) else "--host", f"cannot listen on {host}:{port} ({e.strerror or e}); "
+                         + ("choose another port" if e.errno in (98, 48, 10048) else "use an address of this machine, e.g. 127.0.0.1 or 0.0.0.0")) from None
     # browsers open and drop spare sockets (preconnects); websockets logs each as a failed handshake
     logging.getLogger("websockets.server").setLevel(logging.CRITICAL)
-    try:
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: serve() prints ours
-            server = viser.ViserServer(host=host, port=port, label=f"mcgs-slam: {Path(run).resolve().name}", verbose=False)
-    except OSError as e:
-        raise InputError(None, "--port", f"cannot listen on {host}:{port} ({e.strerror or e}); choose another port") from None
+    with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: serve() prints ours
+        server = viser.ViserServer(host=host, port=port, label=f"mcgs-slam: {Path(run).resolve().name}", verbose=False)
     if server.get_port() != port:  # viser moves to the next free port; a user asked for this one
         stop(server)
         raise InputError(None, "--port", f"port {port} on {host} is in use; choose another port")

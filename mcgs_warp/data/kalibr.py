@@ -53,9 +53,13 @@ def _model(src, name, d) -> str:
     cm, dm = d.get("camera_model"), d.get("distortion_model", "none")
     if cm is None:
         raise InputError(src, f"{name}.camera_model", "missing field")
+    for key, v in (("camera_model", cm), ("distortion_model", dm)):
+        if not isinstance(v, str):
+            raise InputError(src, f"{name}.{key}", f"expected a model name, got {v!r}")
     if (cm, dm) not in MODELS:
         supported = ", ".join(f"{a}-{b}" for a, b in MODELS)
-        raise InputError(src, f"{name}.camera_model", f"Kalibr model {cm}-{dm} is not supported: its projection is not one of ours (supported: {supported}; "
+        field = "camera_model" if cm != "pinhole" else "distortion_model"
+        raise InputError(src, f"{name}.{field}", f"Kalibr model {cm}-{dm} is not supported: its projection is not one of ours (supported: {supported}; "
                          "recalibrate with pinhole-radtan or pinhole-equi)")
     return MODELS[(cm, dm)]
 

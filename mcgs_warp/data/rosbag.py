@@ -2,12 +2,12 @@
 
 A bag carries images, not calibration: the rig file names each camera's ``topic:``
 (``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage``). Read with ``rosbags`` (pure
-Python, no ROS install). Opening a bag reads every image message's header once to index
-the stamps; a frame's images are read again when the frame is loaded, so a long bag never
-sits in memory. Frames are camera 0's images that every other camera has an image for
-within ``sync_tolerance`` seconds (nearest first, on the rig clock: header stamp minus the
-camera's ``time_offset``); images that do not pair are counted in one warning line. The
-frame's timestamp is camera 0's. Bags carry no ground truth and no depth here.
+Python, no ROS install). Opening a bag reads it once, one message at a time, to index the
+images' header stamps; a frame's images are read again when the frame is loaded, so a long
+bag never sits in memory. Frames are camera 0's images that every other camera has an image
+for within ``sync_tolerance`` seconds (closest pairs first, on the rig clock: header stamp
+minus the camera's ``time_offset``); images that do not pair are counted in one warning line.
+The frame's timestamp is camera 0's. Bags carry no ground truth and no depth here.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ import numpy as np
 from ..errors import InputError
 from ..rig import Rig
 from .sequence import MAX_SYNC_DT, Frame, Sequence, warn
-from .trajectory import nearest_timestamps
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -64,7 +63,11 @@ def decode_image(msg, msgtype: str, topic: str, size: tuple[int, int]) -> np.nda
     import cv2
 
     if msgtype == COMPRESSED:
-        img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        data = np.asarray(msg.data, np.uint8)
+        try:
+            img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        except cv2.error:
+            img = None
         if img is None:
             raise InputError(topic, "data", f"could not decode the CompressedImage (format {msg.format!r}; expected jpeg or png)")
         order = "grey" if img.ndim == 2 else "bgr"
@@ -93,6 +96,39 @@ def decode_image(msg, msgtype: str, topic: str, size: tuple[int, int]) -> np.nda
     return np.ascontiguousarray(img.astype(np.float32) / scale)
 
 
+def pair_frames(t: list, tol: float) -> tuple[np.ndarray, list]:
+    """Frames from per-camera times ``t`` (camera 0 first, each sorted, rig clock, s): each
+    camera-0 image takes, in every other camera, the closest image within ``tol`` that no
+    other frame took, and is a frame only if every camera has one. Images whose closest
+    partners are nearest go first (a greedy matching), so a frame that cannot be completed
+    never blocks one that can. Returns the kept camera-0 indices and per camera the index
+    of its image in each kept frame."""
+    t0, others = t[0], t[1:]
+    lo = [np.searchsorted(tc, t0 - tol, "left") for tc in others]
+    hi = [np.searchsorted(tc, t0 + tol, "right") for tc in others]
+    worst = np.zeros(len(t0))
+    for tc, a, b in zip(others, lo, hi):
+        for k in range(len(t0)):
+            worst[k] = max(worst[k], np.abs(tc[a[k] : b[k]] - t0[k]).min()) if b[k] > a[k] else np.inf
+    used = [set() for _ in others]
+    picks = {}
+    for k in np.argsort(worst, kind="stable"):
+        if not np.isfinite(worst[k]):
+            break
+        choice = []
+        for c, (tc, a, b) in enumerate(zip(others, lo, hi)):
+            free = [j for j in range(a[k], b[k]) if j not in used[c]]
+            if not free:
+                break
+            choice.append(min(free, key=lambda j: abs(tc[j] - t0[k])))
+        if len(choice) == len(others):
+            for c, j in enumerate(choice):
+                used[c].add(j)
+            picks[int(k)] = choice
+    kept = np.array(sorted(picks), dtype=int)
+    return kept, [kept] + [np.array([picks[k][c] for k in kept], dtype=int) for c in range(len(others))]
+
+
 class BagSequence(Sequence):
     """The rig's cameras' image topics in a ROS 1 or ROS 2 bag (see the module docstring)."""
 
@@ -107,7 +143,8 @@ class BagSequence(Sequence):
         self.rig = rig
         for i, c in enumerate(rig.cameras):
             if c.topic is None:
-                raise InputError(rig_source, f"cameras[{i}].topic", f"missing field: camera {c.name!r} needs the image topic it is recorded on in the bag")
+                raise InputError(rig_source, f"cameras[{i}].topic", f"missing field: camera {c.name!r} needs the image topic it is recorded on in the bag "
+                                 f"(in a Kalibr camchain: cam{i}.rostopic)")
         topics = [c.topic for c in rig.cameras]
         for i, t in enumerate(topics):
             if topics.index(t) != i:
@@ -117,6 +154,13 @@ class BagSequence(Sequence):
             self._reader.open()
         except Exception as e:  # rosbags raises its own error types for broken bags
             raise InputError(self.path, None, f"could not open the bag: {e}") from None
+        try:
+            self._open(rig, topics, sync_tolerance)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, rig: Rig, topics: list, sync_tolerance: float) -> None:
         by_topic: dict[str, list] = {}
         for conn in self._reader.connections:
             by_topic.setdefault(conn.topic, []).append(conn)
@@ -146,7 +190,7 @@ class BagSequence(Sequence):
             if stamp in index[i]:
                 duplicates[i] += 1
                 continue
-            index[i][stamp] = (conn, int(t_bag))
+            index[i][stamp] = (conn, int(t_bag), stamp)
         for i, n in enumerate(duplicates):
             if n:
                 warn(self.path, f"{self.rig.cameras[i].topic}: skipped {n} images with a header stamp another image already has")
@@ -159,20 +203,7 @@ class BagSequence(Sequence):
         stamps = [np.array(sorted(d), dtype=np.int64) for d in index]
         t0 = stamps[0][0]
         t = [(s - t0) * 1e-9 - c.time_offset for s, c in zip(stamps, self.rig.cameras)]  # rig clock, from camera 0's first image
-        keep = np.ones(len(t[0]), bool)
-        partner = [np.arange(len(t[0]))]
-        for c in range(1, len(t)):
-            j = nearest_timestamps(t[0], t[c], tol)
-            ok = j >= 0
-            # one image of camera c per frame: the camera-0 image nearest to it keeps it
-            for jj in np.unique(j[ok]):
-                cand = np.nonzero(j == jj)[0]
-                if len(cand) > 1:
-                    best = cand[np.argmin(np.abs(t[0][cand] - t[c][jj]))]
-                    ok[cand[cand != best]] = False
-            keep &= ok
-            partner.append(j)
-        kept = np.nonzero(keep)[0]
+        kept, partner = pair_frames(t, tol)
         total = sum(len(s) for s in stamps)
         dropped = [len(s) - len(kept) for s in stamps]
         if not len(kept):
@@ -181,18 +212,20 @@ class BagSequence(Sequence):
         if sum(dropped):
             per = ", ".join(f"{c.topic} {d}" for c, d in zip(self.rig.cameras, dropped) if d)
             warn(self.path, f"dropped {sum(dropped)} of {total} images without a partner within {tol * 1e3:g} ms in every camera ({per}); kept {len(kept)} frames")
-        self._frames = [[index[c][int(stamps[c][partner[c][k]])] for c in range(len(stamps))] for k in kept]
+        self._frames = [[index[c][int(stamps[c][partner[c][f]])] for c in range(len(stamps))] for f in range(len(kept))]
         self.timestamps = stamps[0][kept] * 1e-9 - self.rig.cameras[0].time_offset
         if len(self.timestamps) > 1 and np.any(np.diff(self.timestamps) <= 0):
             raise InputError(self.path, self.rig.cameras[0].topic, "frame timestamps must increase")
 
     def load_frame(self, k: int) -> Frame:
         images = []
-        for c, (conn, t_bag) in zip(self.rig.cameras, self._frames[k]):
+        for c, (conn, t_bag, stamp) in zip(self.rig.cameras, self._frames[k]):
             msg = None
-            for cn, _, raw in self._reader.messages(connections=[conn], start=t_bag, stop=t_bag + 1):
-                msg = self._reader.deserialize(raw, cn.msgtype)
-                break
+            for cn, t, raw in self._reader.messages(connections=[conn], start=t_bag, stop=t_bag + 1):
+                m = self._reader.deserialize(raw, cn.msgtype)
+                if (_stamp_ns(m) or int(t)) == stamp:  # recorded at the same instant as another: the one with this stamp
+                    msg = m
+                    break
             if msg is None:
                 raise InputError(self.path, c.topic, f"image at bag time {t_bag} ns could not be read again")
             images.append(decode_image(msg, conn.msgtype, c.topic, (c.width, c.height)))
@@ -200,8 +233,12 @@ class BagSequence(Sequence):
 
     def close(self) -> None:
         reader = getattr(self, "_reader", None)
-        if reader is not None and reader.isopen:
-            reader.close()
+        if reader is not None:
+            self._reader = None
+            try:
+                reader.close()
+            except Exception:  # already closed, or never fully opened
+                pass
 
     def __del__(self):
         try:
@@ -242,26 +279,31 @@ def write_bag(seq: Sequence, out, ros: int = 1, compressed: bool = False, topics
     Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
     msgtype = COMPRESSED if compressed else IMAGE
     Msg = store.types[msgtype]
-    tmp = out.with_name(out.name + ".partial")
-    if tmp.exists():
-        import shutil
+    import shutil
 
-        shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
     if len(seq) and seq.timestamps[0] + min(c.time_offset for c in rig.cameras) < 0:
         raise InputError(None, "timestamps", f"ROS time cannot be negative; the first frame is at {seq.timestamps[0]:.6f} s")
-    with Writer(tmp, **options) as writer:
-        conns = [writer.add_connection(c.topic, msgtype, typestore=store) for c in rig.cameras]
-        for k in range(len(seq)):
-            f = seq[k]
-            for i, (c, conn) in enumerate(zip(rig.cameras, conns)):
-                ns = int(round((f.timestamp + c.time_offset) * 1e9))
-                header = Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=c.name, **({"seq": k} if ros == 1 else {}))
-                rgb = (np.clip(f.images[i], 0, 1) * 255 + 0.5).astype(np.uint8)
-                if compressed:
-                    ok, buf = cv2.imencode(".png", rgb[..., ::-1])
-                    msg = Msg(header=header, format="png", data=buf.reshape(-1))
-                else:
-                    msg = Msg(header=header, height=rgb.shape[0], width=rgb.shape[1], encoding="rgb8", is_bigendian=0, step=rgb.shape[1] * 3, data=rgb.reshape(-1))
-                writer.write(conn, ns, serialize(msg, msgtype))
-    tmp.rename(out)
+    staging = out.parent / f".{out.name}.partial"  # the bag is written here under its final name, then moved
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    tmp = staging / out.name
+    try:
+        with Writer(tmp, **options) as writer:
+            conns = [writer.add_connection(c.topic, msgtype, typestore=store) for c in rig.cameras]
+            for k in range(len(seq)):
+                f = seq[k]
+                for i, (c, conn) in enumerate(zip(rig.cameras, conns)):
+                    ns = int(round((f.timestamp + c.time_offset) * 1e9))
+                    header = Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=c.name, **({"seq": k} if ros == 1 else {}))
+                    rgb = (np.clip(f.images[i], 0, 1) * 255 + 0.5).astype(np.uint8)
+                    if compressed:
+                        ok, buf = cv2.imencode(".png", rgb[..., ::-1])
+                        msg = Msg(header=header, format="png", data=buf.reshape(-1))
+                    else:
+                        msg = Msg(header=header, height=rgb.shape[0], width=rgb.shape[1], encoding="rgb8", is_bigendian=0, step=rgb.shape[1] * 3, data=rgb.reshape(-1))
+                    writer.write(conn, ns, serialize(msg, msgtype))
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return out, rig

@@ -114,7 +114,8 @@ def test_timeshift_topic_and_model_names(tmp_path):
     [
         (lambda d: d["cam1"].update(camera_model="omni", intrinsics=[0.9, 460.0, 460.0, 370.0, 250.0]), "cam1.camera_model", "omni-radtan is not supported"),
         (lambda d: d["cam0"].update(camera_model="ds"), "cam0.camera_model", "ds-radtan"),
-        (lambda d: d["cam1"].update(distortion_model="fov"), "cam1.camera_model", "pinhole-fov"),
+        (lambda d: d["cam1"].update(distortion_model="fov"), "cam1.distortion_model", "pinhole-fov"),
+        (lambda d: d["cam1"].update(camera_model=["pinhole"]), "cam1.camera_model", "expected a model name"),
         (lambda d: d.update(cam2=d.pop("cam1")), "cam1", "missing camera block"),
         (lambda d: d["cam1"].pop("T_cam_imu") and d["cam1"].pop("T_cn_cnm1"), "cam1.T_cn_cnm1", "missing field"),
         (lambda d: d["cam0"].update(T_cam_imu=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]), "cam0.T_cam_imu", "rotation"),

@@ -92,6 +92,22 @@ def test_cameras_pair_within_the_tolerance_and_drops_are_counted_once(tmp_path, 
         BagSequence(path, _rig(3), sync_tolerance=0.001)
 
 
+def test_pairing_tries_the_next_closest_image_when_the_closest_is_taken(tmp_path):
+    """cam0 at 0 and 6 ms, cam1 at 2.5 ms, cam2 at 6 ms, 5 ms tolerance: cam0's first image is
+    closest to cam1's but has no cam2 partner; its second image pairs with both (6 / 2.5 / 6)."""
+    from mcgs_warp.data.rosbag import pair_frames
+
+    b = 10**9
+    path = _write_custom(tmp_path / "next.bag", 1, [[b, b + 6_000_000], [b + 2_500_000], [b + 6_000_000]])
+    seq = BagSequence(path, _rig(3))
+    assert len(seq) == 1 and seq.timestamps[0] == pytest.approx((b + 6_000_000) * 1e-9)
+    assert [float(im[0, 0, 0]) * 255 for im in seq[0].images] == pytest.approx([10, 1, 2])  # images 1, 0, 0
+    # closest pairs first, each camera image used once: 1.0 takes 1.05, 0.9 is left for 0.8
+    kept, partner = pair_frames([np.array([0.8, 1.0, 2.0]), np.array([0.9, 1.05, 2.5])], 0.2)
+    np.testing.assert_array_equal(kept, [0, 1])
+    np.testing.assert_array_equal(partner[1], [0, 1])
+
+
 def test_time_offset_moves_a_camera_onto_the_rig_clock(tmp_path):
     t0 = [k * 100_000_000 + 10**9 for k in range(5)]
     t1 = [t + 40_000_000 for t in t0]  # cam1's clock runs 40 ms ahead
@@ -166,6 +182,13 @@ def test_bad_bags_and_rigs_name_the_topic_or_field(tmp_path):
     bayer = _write_custom(tmp_path / "bayer.bag", 1, [t], encoding="bayer_rggb8")
     with pytest.raises(InputError, match="bayer_rggb8"):
         BagSequence(bayer, _rig(1))[0]
+    from mcgs_warp.data.rosbag import COMPRESSED
+
+    class Empty:
+        format, data = "jpeg", np.zeros(0, np.uint8)
+
+    with pytest.raises(InputError, match="could not decode the CompressedImage"):
+        decode_image(Empty(), COMPRESSED, "/t", (5, 4))
     broken = tmp_path / "broken.bag"
     broken.write_bytes(b"#ROSBAG V2.0\n" + b"\0" * 64)
     with pytest.raises(InputError, match="could not open the bag"):

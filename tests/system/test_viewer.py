@@ -116,17 +116,21 @@ def test_view_serves_the_page_and_the_scene(run_folder):
         assert not frusta["keyframe 2 / left"].visible and frusta["keyframe 2 / front"].visible
         handles["look_through"]("free camera")
         assert all(f.visible for f in frusta.values())
-        with pytest.raises(InputError, match=f"port {port} on 127.0.0.1 is in use"):
+        with pytest.raises(InputError, match=f"--port: cannot listen on 127.0.0.1:{port} .*choose another port"):
             start(run_folder, port=port)
     finally:
         stop(server)
 
 
-def test_view_errors_name_the_file(tmp_path):
+def test_view_errors_name_the_file(tmp_path, run_folder):
     with pytest.raises(InputError, match="run folder not found"):
         start(tmp_path / "nothing")
     with pytest.raises(InputError, match="map.ply: missing"):
         start(tmp_path)
+    with pytest.raises(InputError, match="--port: expected a port in 1-65535, got 70000"):
+        start(run_folder, port=70000)
+    with pytest.raises(InputError, match="--host: cannot listen on 10.255.255.1"):  # not this machine's address
+        start(run_folder, host="10.255.255.1", port=free_port())
 
 
 def test_groundtruth_in_map_inverts_the_alignment():
