@@ -43,10 +43,13 @@ def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: f
 
         own = [read_sensor(_mav0(path) / f"cam{i}" / "sensor.yaml", f"cam{i}") for i in (0, 1)]
         _check_replacement(own, rig, rig_source)
-        return EurocSequence(path, rig)
+        seq = EurocSequence(path, rig)
+        _check_body(own, rig, rig_source, seq.groundtruth is not None)
+        return seq
     seq = _open_folder(path, kitti_cameras, None)  # the folder's own rig: what a replacement must match
     if rig is not None:
         _check_replacement(seq.rig.cameras, rig, rig_source)
+        _check_body(seq.rig.cameras, rig, rig_source, seq.groundtruth is not None)
         if isinstance(seq, TumSequence):  # its time offset moves the frames onto the ground truth's clock
             seq = TumSequence(path, rig)
         seq.rig = rig
@@ -60,6 +63,22 @@ def _check_replacement(own: list, rig, source) -> None:
     for i, (a, b) in enumerate(zip(rig.cameras, own)):
         if (a.width, a.height) != (b.width, b.height):
             raise InputError(source, f"cameras[{i}].resolution", f"expected {b.width}x{b.height} (the sequence's images), got {a.width}x{a.height}")
+
+
+def _check_body(own: list, rig, source, has_groundtruth: bool) -> None:
+    """Warn where a replacement rig puts camera 0 elsewhere in the body than the folder's rig
+    (e.g. a camera-only Kalibr camchain, body = cam0, for a EuRoC folder, body = IMU): the
+    ground truth is of the folder's body, so the ATE would compare different frames."""
+    import numpy as np
+
+    from .sequence import warn
+
+    D = np.linalg.inv(own[0].T_b_c) @ rig.cameras[0].T_b_c
+    moved = float(np.linalg.norm(D[:3, 3]))
+    turned = float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
+    if has_groundtruth and (moved > 0.01 or turned > 1.0):
+        warn(source, f"camera 0 sits {moved * 100:.1f} cm and {turned:.1f} deg from where the folder's own calibration puts it in the body: "
+             "the ground truth is of the folder's body, so the ATE compares different frames (a camera-only Kalibr camchain makes cam0 the body; use camchain-imucam.yaml)")
 
 
 def _open_folder(path: Path, kitti_cameras: str, rig) -> Sequence:

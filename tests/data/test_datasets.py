@@ -182,10 +182,11 @@ def test_associate_nearest_within_tolerance():
     assert associate(a, b).tolist() == [0, 1, -1, 3]
 
 
-def test_a_rig_given_for_a_euroc_folder_replaces_its_calibration(tmp_path):
+def test_a_rig_given_for_a_euroc_folder_replaces_its_calibration(tmp_path, capsys):
     """`run --rig` / `--from-kalibr` on a EuRoC folder: the given rig's calibration replaces
     sensor.yaml's, and its time offsets pair the images (a Kalibr timeshift of 8 ms brings
-    cam1's late stamps back within the 5 ms tolerance); a rig of another shape is refused."""
+    cam1's late stamps back within the 5 ms tolerance); one whose body is not the folder's
+    (where ground truth exists) is warned about; a rig of another shape is refused."""
     import copy
 
     root = make_euroc(tmp_path / "seq", cam1_shift_ns=8_000_000)
@@ -196,6 +197,14 @@ def test_a_rig_given_for_a_euroc_folder_replaces_its_calibration(tmp_path):
     rig.cameras[1].intrinsics = (450.0, 450.0, 20.0, 15.0)
     seq = open_sequence(root, rig=rig, rig_source="kalibr.yaml")
     assert len(seq) == 2 and seq.rig.cameras[1].intrinsics == (450.0, 450.0, 20.0, 15.0)
+    assert "camera 0 sits" not in capsys.readouterr().err  # same body
+    cam0_body = copy.deepcopy(rig)  # a camera-only camchain: the body is cam0, not EuRoC's IMU
+    T_c0_b = np.linalg.inv(rig.cameras[0].T_b_c)
+    for c in cam0_body.cameras:
+        c.T_b_c = T_c0_b @ c.T_b_c
+    open_sequence(root, rig=cam0_body, rig_source="kalibr.yaml")
+    err = capsys.readouterr().err
+    assert "kalibr.yaml: camera 0 sits 6.9 cm and" in err and "ATE compares different frames" in err, err
     small = copy.deepcopy(rig)
     small.cameras[0].width = 20
     with pytest.raises(InputError, match=r"kalibr.yaml: cameras\[0\].resolution: expected 40x30"):
