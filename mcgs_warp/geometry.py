@@ -70,6 +70,18 @@ def invert(T) -> np.ndarray:
     return out
 
 
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) of rotation matrices [...,3,3], accurate near 0 and pi."""
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0))
+
+
+def pose_distance(A, B) -> tuple[float, float]:
+    """How far apart two rigid transforms are: translation (m) and angle (rad) of ``A^-1 B``."""
+    D = invert(A) @ np.asarray(B, dtype=np.float64)
+    return float(np.linalg.norm(D[:3, 3])), float(rotation_angle(D[:3, :3]))
+
+
 def rotation_error(R, tol: float = 1e-4) -> str | None:
     """Why ``R`` [3,3] is not a rotation (orthonormal, det +1) within ``tol``, or None."""
     R = np.asarray(R, dtype=np.float64)

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .geometry import quat_to_matrix
 
 CAMERA_COLOURS = [(230, 80, 60), (60, 140, 230), (80, 190, 90), (200, 160, 40), (160, 90, 200), (40, 190, 190)]
 TRAJECTORY_COLOUR, GROUNDTRUTH_COLOUR = (255, 140, 0), (40, 200, 80)
@@ -56,15 +57,6 @@ class RunScene:
         return u / max(np.linalg.norm(u), 1e-12)
 
 
-def quat_to_matrix_xyzw(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
 def load_run(run, max_gaussians: int = 500_000) -> RunScene:
     """Read a run folder's map, keyframe cameras and trajectories (errors name the file)."""
     import cv2
@@ -81,7 +73,7 @@ def load_run(run, max_gaussians: int = 500_000) -> RunScene:
     p = read_ply(run / "map.ply")
     opacity = 1.0 / (1.0 + np.exp(-p["opacity_logits"].astype(np.float64)))
     keep = np.argsort(-opacity)[:max_gaussians] if len(opacity) > max_gaussians else np.arange(len(opacity))
-    R = quat_to_matrix_xyzw(p["quats"][keep].astype(np.float64))
+    R = quat_to_matrix(p["quats"][keep])
     s2 = np.exp(2.0 * p["log_scales"][keep].astype(np.float64))
     cov = (R * s2[:, None, :]) @ np.swapaxes(R, 1, 2)
     scene = RunScene(p["means"][keep].astype(np.float32), cov.astype(np.float32), np.clip(p["colors"][keep], 0, 1).astype(np.float32),

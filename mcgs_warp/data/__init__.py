@@ -46,7 +46,7 @@ def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: f
         seq = EurocSequence(path, rig)
         _check_body(own, rig, rig_source, seq.groundtruth is not None)
         return seq
-    seq = _open_folder(path, kitti_cameras, None)  # the folder's own rig: what a replacement must match
+    seq = _open_folder(path, kitti_cameras)  # the folder's own rig: what a replacement must match
     if rig is not None:
         _check_replacement(seq.rig.cameras, rig, rig_source)
         _check_body(seq.rig.cameras, rig, rig_source, seq.groundtruth is not None)
@@ -71,25 +71,25 @@ def _check_body(own: list, rig, source, has_groundtruth: bool) -> None:
     ground truth is of the folder's body, so the ATE would compare different frames."""
     import numpy as np
 
+    from ..geometry import pose_distance
     from .sequence import warn
 
-    D = np.linalg.inv(own[0].T_b_c) @ rig.cameras[0].T_b_c
-    moved = float(np.linalg.norm(D[:3, 3]))
-    turned = float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
+    moved, turned = pose_distance(own[0].T_b_c, rig.cameras[0].T_b_c)
+    turned = float(np.degrees(turned))
     if has_groundtruth and (moved > 0.01 or turned > 1.0):
         warn(source, f"camera 0 sits {moved * 100:.1f} cm and {turned:.1f} deg from where the folder's own calibration puts it in the body: "
              "the ground truth is of the folder's body, so the ATE compares different frames (a camera-only Kalibr camchain makes cam0 the body; use camchain-imucam.yaml)")
 
 
-def _open_folder(path: Path, kitti_cameras: str, rig) -> Sequence:
+def _open_folder(path: Path, kitti_cameras: str) -> Sequence:
     if (path / "timestamps.txt").is_file() or ((path / "rig.yaml").is_file() and not (path / "rgb.txt").is_file()):  # a TUM folder may hold its rig.yaml
         return FolderSequence(path)
     if is_euroc(path):
-        return EurocSequence(path, rig)
+        return EurocSequence(path)
     if is_kitti(path):
         return KittiSequence(path, kitti_cameras)
     if (path / "rgb.txt").is_file():
-        return TumSequence(path, rig)
+        return TumSequence(path)
     if not any(path.iterdir()):
         raise InputError(path, None, "data folder is empty")
     raise InputError(

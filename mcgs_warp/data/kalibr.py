@@ -29,6 +29,7 @@ import re
 import numpy as np
 
 from ..errors import InputError
+from ..geometry import invert, pose_distance
 from ..rig import CameraSpec, Rig, load_yaml, parse_camera, parse_pose, rig_from_dict
 from .sequence import warn
 
@@ -64,19 +65,6 @@ def _model(src, name, d) -> str:
     return MODELS[(cm, dm)]
 
 
-def _inverse(T: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
-def _disagreement(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    D = _inverse(A) @ B
-    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
-    return float(np.linalg.norm(D[:3, 3])), float(angle)
-
-
 def rig_from_kalibr(path) -> Rig:
     """Read a Kalibr camchain YAML as a validated :class:`Rig` (see the module docstring)."""
     data = load_yaml(path)
@@ -99,7 +87,7 @@ def rig_from_kalibr(path) -> Rig:
         elif imu_body and "T_cam_imu" in d:
             direct = parse_pose(path, f"{n}.T_cam_imu", d["T_cam_imu"])
             if chained is not None:
-                dt, dr = _disagreement(direct, chained)
+                dt, dr = pose_distance(direct, chained)
                 if dt > CHAIN_TOLERANCE[0] or dr > CHAIN_TOLERANCE[1]:
                     warn(path, f"{n}: T_cam_imu and T_cn_cnm1 x cam{i - 1}'s T_cam_imu differ by {dt * 1e3:.2f} mm and {np.degrees(dr):.3f} deg; using T_cam_imu")
             T_c_b.append(direct)
@@ -123,7 +111,7 @@ def rig_from_kalibr(path) -> Rig:
         except InputError as e:  # say Kalibr's field names
             msg = str(e).replace(f"cameras[{i}].distortion", f"{n}.distortion_coeffs").replace(f"cameras[{i}].time_offset", f"{n}.timeshift_cam_imu").replace(f"cameras[{i}].topic", f"{n}.rostopic").replace(f"cameras[{i}].", f"{n}.")
             raise InputError(None, None, msg) from None
-        spec.T_b_c = _inverse(T_c_b[i])
+        spec.T_b_c = invert(T_c_b[i])
         cameras.append(spec)
     rig = Rig(cameras)
     rig_from_dict(rig.to_dict(), src=path)  # the same checks as a rig file (names, poses)

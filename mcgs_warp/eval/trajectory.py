@@ -18,7 +18,7 @@ import numpy as np
 
 from ..data.trajectory import Trajectory, nearest_timestamps
 from ..errors import InputError
-from ..geometry import invert
+from ..geometry import invert, rotation_angle  # noqa: F401 (rotation_angle: also this module's API)
 
 
 def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -85,12 +85,6 @@ def evaluate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, with_scale: 
         n_matched=int(len(i)),
     )
     return (metrics, A, G, est.timestamps[i]) if return_timestamps else (metrics, A, G)
-
-
-def rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angle (rad) of rotation matrices [...,3,3], accurate near 0 and pi."""
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    return np.arctan2(0.5 * np.linalg.norm(w, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0))
 
 
 def relative_pose_error(P: np.ndarray, Q: np.ndarray, delta: int = 1, scale: float = 1.0) -> tuple[float, float]:
