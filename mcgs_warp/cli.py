@@ -80,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="estimated (default) or ground-truth: exact correspondences from the sequence's gt/ depth "
                      "and groundtruth.txt (synthetic sequences), to measure the back end without the front end")
     run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
+    run.add_argument("--every", type=int, default=1, metavar="N",
+                     help="keep every N-th frame (default 1: all): a high-rate camera at a lower rate; frame numbers in messages count the kept frames")
     run.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
     calib = run.add_mutually_exclusive_group()
     calib.add_argument("--rig", default=None, help="rig YAML (or Kalibr camchain): a ROS bag's calibration, each camera with its topic:; "
@@ -189,7 +191,7 @@ def cmd_run(args) -> int:
 
         rig_from_kalibr(args.from_kalibr)  # refuses a file that is not a camchain
         rig = args.from_kalibr  # run_sequence reads it again, and names it in its errors
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance)
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance, every=args.every)
     print(f"run finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0

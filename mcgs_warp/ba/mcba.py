@@ -127,13 +127,17 @@ class MCBA:
         return [int(k) for k in keyframes]
 
     # ----------------------------------------------------------------------------------
-    def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None) -> MCBAStats:
+    def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None, keypoints=None) -> MCBAStats:
         """Run LM iterations over ``edges`` [E,>=4] with correspondences ``targets``
         [E,h,w,2] (reduced-grid pixels) and ``weights`` [E,h,w].
 
         ``keyframes``: the window (default: every keyframe an edge touches; every edge
         must stay inside it); ``fixed``: keyframes whose pose is held (default: the
-        first of the window)."""
+        first of the window); ``keypoints``: a
+        :class:`~mcgs_warp.ba.keypoint_factors.KeypointProblem` over the window's slots,
+        whose tracks are solved with it (their inverse depths are updated in place)."""
+        from .keypoint_factors import KeypointFactors, window_poses
+
         cfg = self.cfg
         edges = np.asarray(edges)
         keyframes = self._window(edges, keyframes)
@@ -143,8 +147,9 @@ class MCBA:
             return stats
         prior = self.prior_target(keyframes) if cfg.prior_weight > 0 else None
         win = _Window(self.buf, cfg, keyframes, edges, targets, weights, prior)
+        kp = KeypointFactors(keypoints, self.buf.rig, self.buf.stride, cfg.huber_delta, cfg.min_disp) if keypoints is not None and len(keypoints) else None
         lam = cfg.lm_lambda
-        current = win.cost(win.disp, win.poses)
+        current = win.cost(win.disp, win.poses) + (kp.cost(window_poses(win.poses.numpy())) if kp else 0.0)
         stats.cost.append(current)
         free = [s for s, k in enumerate(keyframes) if k not in fixed]
         free_idx = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in free]) if free else np.zeros(0, int)
@@ -156,6 +161,9 @@ class MCBA:
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0
             S, rhs = win.reduce(lam)  # Schur complement with the damped depth block
+            if kp:
+                S_kp, rhs_kp = kp.reduced_terms(window_poses(win.poses.numpy()), lam)
+                S, rhs = S + S_kp, rhs + rhs_kp
             t2 = time.perf_counter()
             stats.seconds_reduce += t2 - t1
 
@@ -175,8 +183,13 @@ class MCBA:
                         break
                     continue
                 new_cost = win.cost(win.disp_c, win.poses_c)
+                if kp:
+                    kp.candidate(dxi)
+                    new_cost += kp.cost(window_poses(win.poses_c.numpy()), kp.disp_c)
                 if new_cost <= current:
                     win.accept()
+                    if kp:
+                        kp.accept()
                     current = new_cost
                     stats.cost.append(current)
                     stats.accepted += 1
@@ -191,6 +204,8 @@ class MCBA:
                 break
         if stats.accepted:
             win.store()
+            if kp:
+                keypoints.disp[:] = kp.disp
         if stats.keyframes:
             stats.depth_info = win.Cd  # the window's own array: no later solve writes it
         return stats

@@ -121,6 +121,33 @@ class CameraSubset(Sequence):
         return None if d is None else [d[c] for c in self.cameras]
 
 
+class EveryNth(Sequence):
+    """Every ``step``-th frame of a sequence (``run --every N``): a high-rate camera at a lower
+    rate, or a drive with frames dropped (tracking under larger motion). Frame ``k`` here is
+    frame ``k * step`` of ``seq``; the ground truth stays whole (evaluation matches by time)."""
+
+    def __init__(self, seq: Sequence, step: int):
+        if isinstance(step, bool) or not isinstance(step, int) or step < 1:
+            raise InputError(None, "--every", f"expected a whole number of frames of at least 1, got {step!r}")
+        if len(seq) and (len(seq) - 1) // step + 1 < 2:
+            raise InputError(None, "--every", f"keeps only 1 of the sequence's {len(seq)} frames: expected at most {max(len(seq) - 1, 1)}")
+        self.seq, self.step = seq, step
+        self.rig = seq.rig
+        self.timestamps = np.asarray(seq.timestamps)[::step]
+        self.groundtruth, self.name = seq.groundtruth, seq.name
+        self.depth_exact, self.gravity = seq.depth_exact, seq.gravity
+
+    def load_frame(self, k: int) -> Frame:
+        f = self.seq[k * self.step]
+        return Frame(k, f.timestamp, f.images, f.depths)
+
+    def depth_cameras(self) -> list[bool]:
+        return self.seq.depth_cameras()
+
+    def gt_depths(self, k: int) -> list | None:
+        return self.seq.gt_depths(k * self.step)
+
+
 def read_timestamps(path) -> np.ndarray:
     """One timestamp per line (extra columns ignored), strictly increasing."""
     path = Path(path)

@@ -24,20 +24,41 @@ class KeyframeSelector:
         self.focal = [spec.pixels_per_radian for spec in cameras]  # the rig's CameraSpecs, in image order
         self.threshold = threshold
         self.scale = scale
+        self._previous, self._previous_key = None, None  # the last frame's flows, and which keyframe they start at
 
-    def mean_flow(self, images_a, images_b) -> float:
-        """Mean flow magnitude (rad of view angle) from ``images_a`` to ``images_b`` over all cameras."""
+    def flows(self, images_a, images_b) -> list:
+        """Flow fields [C] ([h,w,2] in rad of view angle, at ``scale``) from ``images_a`` to ``images_b``."""
         import cv2
 
-        mags = []
+        out = []
         for a, b, focal in zip(images_a, images_b, self.focal):
             if self.scale != 1.0:
                 a = cv2.resize(a, None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
                 b = cv2.resize(b, None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
             f, _ = self.flow.flow(a, b)
-            mags.append(float(np.linalg.norm(f, axis=-1).mean()) / self.scale / focal)
-        return float(np.mean(mags))
+            out.append(f / self.scale / focal)
+        return out
+
+    def mean_flow(self, images_a, images_b) -> float:
+        """Mean flow magnitude (rad of view angle) from ``images_a`` to ``images_b`` over all cameras."""
+        return float(np.mean([np.linalg.norm(f, axis=-1).mean() for f in self.flows(images_a, images_b)]))
 
     def is_keyframe(self, last_keyframe_images, images) -> tuple[bool, float]:
-        m = self.mean_flow(last_keyframe_images, images)
-        return m > self.threshold, m
+        """Whether ``images`` make a keyframe, and the image motion (rad) since the frame
+        before (:meth:`motion`; the whole flow for the first frame after a keyframe)."""
+        flows = self.flows(last_keyframe_images, images)
+        m = float(np.mean([np.linalg.norm(f, axis=-1).mean() for f in flows]))
+        previous = self._previous if self._previous is not None and self._previous_key is last_keyframe_images else None
+        self._previous, self._previous_key = flows, last_keyframe_images
+        return m > self.threshold, motion(flows, previous)
+
+
+def motion(flows, previous=None, q: float = 75.0) -> float:
+    """Image motion (rad) between two frames seen from one keyframe: per camera the ``q``-th
+    percentile over pixels of the change of flow ``flows`` [C] ([h,w,2], rad) against
+    ``previous`` (the frame before's flows from the same keyframe; None: that frame is the
+    keyframe, zero flow), averaged over cameras. A field difference, not a difference of mean
+    magnitudes (which rotation and parallax can hold constant while the rig moves): a pause is
+    a pause in the images. An upper percentile, because a car's far field barely moves."""
+    prev = [None] * len(flows) if previous is None else previous
+    return float(np.mean([np.percentile(np.linalg.norm(f if p is None else f - p, axis=-1), q) for f, p in zip(flows, prev)]))

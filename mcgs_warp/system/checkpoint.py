@@ -14,9 +14,9 @@ import numpy as np
 
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
 #: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
-#: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows), so that
+#: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows; 7: image motion between frames instead, keypoint tracks), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 6
+CHECKPOINT_FORMAT = 7
 
 
 class Checkpointing:
@@ -43,9 +43,10 @@ class Checkpointing:
             frame_index=np.array(buf.frame_index, dtype=np.int64),
             kf_frames=np.array(kf_frames, dtype=np.int64),
             **self.graph.state_arrays(correspondence_store(path)),
+            **(self.tracks.state_arrays() if self.tracks is not None else {}),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "frame_flow": {str(k): v for k, v in self.frame_flow.items()}})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -101,6 +102,11 @@ class Checkpointing:
             for k, fi in enumerate(a["frame_index"]):
                 frame = self.seq[int(fi)]
                 buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
+                if self.keypoints is not None:  # deterministic from the images: detected again, not stored
+                    views = self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
+                    self.keypoints.keep(k, views)
+                    if self.tracks is not None:
+                        self.tracks.add_views(k, views)
             wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
             grids = buf.scales.numpy()
             grids[: len(a["scales"])] = a["scales"]
@@ -108,6 +114,11 @@ class Checkpointing:
             exposure = buf.exposure.numpy()
             exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
             buf.exposure.assign(exposure)
+            if self.tracks is not None:
+                try:
+                    self.tracks.load_state_arrays(a)
+                except ValueError as e:
+                    raise InputError(path, "tracks.parent", f"{e}; start without --resume") from None
             try:
                 self.graph.load_state_arrays(a, correspondence_store(path))
             except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
@@ -127,7 +138,7 @@ class Checkpointing:
             self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
             self.seconds = meta["seconds"]
             self.health = meta["health"]
-            self.frame_flow = {int(k): float(v) for k, v in meta["frame_flow"].items()}
+            self.frame_motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
             kf_frames = [int(v) for v in a["kf_frames"]]
         except KeyError as e:
             raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None

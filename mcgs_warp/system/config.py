@@ -52,6 +52,8 @@ class TrackingConfig:
     jdsa: bool = True  # fit the JDSA scale grids (eq. 5) after every MCBA round, for inexact priors
     min_confident: float = 0.05  # a new keyframe with confident correspondences on fewer of its grid pixels than this fraction is a tracking failure
     max_residual_ratio: float = 10.0  # ... and so is one whose final robust cost per unit of correspondence weight exceeds this times the run's median
+    keypoints: bool = True  # anchor each new keyframe's pose by keypoints matched against recent keyframes (multi-camera PnP; false: the constant-velocity prediction alone), relocalize failed keyframes by them, and add their tracks to MCBA
+    keypoint_weight: float = 1.0  # confidence of one keypoint observation in MCBA (a dense correspondence's is its DIS confidence, 0-1; 0: keypoints only anchor and relocalize)
     flow_rounds: int = 2  # MCBA (+ JDSA) rounds per keyframe; between them correspondences follow the new geometry
 
 

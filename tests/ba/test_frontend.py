@@ -493,3 +493,28 @@ def test_guided_confidence_drops_matches_that_only_agree_with_a_wrong_prediction
     (e1, c1), (e0, c0) = _errors(*with_photo, gt_t, gt_w), _errors(*without, gt_t, gt_w)
     assert np.mean(e1 > 0.5) < 0.6 * np.mean(e0 > 0.5), (np.mean(e1 > 0.5), np.mean(e0 > 0.5))
     assert c1 > 0.2 and c0 > 0.8, (c1, c0)
+
+
+def test_image_motion_finds_a_pause_and_only_the_pause(tmp_path):
+    """The keyframe test's flows say whether the rig moved since the frame before: on an
+    indoor drive with camera noise, blur and JPEG (seed 3: 1 m/s, then standing still for 5
+    frames) the frames of the pause are still and every frame of the drive moved, including
+    those a mean-flow-magnitude rule would call still (turning while driving)."""
+    from mcgs_warp.data.indoor import indoor_layout
+    from mcgs_warp.data.synthetic import generate
+    from mcgs_warp.system.slam import STILL_MOTION
+
+    lay = indoor_layout(3)
+    seq = generate(tmp_path / "seq", n_cameras=2, n_frames=lay.pause_start + lay.pause_frames + 3, seed=3, progress=False, depth="none", scene="indoor", realism="camera")
+    sel = KeyframeSelector(DISFlow(), seq.rig.cameras)
+    last, motions = seq[0].images, {}
+    for k in range(1, len(seq)):
+        images = seq[k].images
+        is_kf, motions[k] = sel.is_keyframe(last, images)
+        if is_kf:
+            last = images
+    still = {k for k in motions if motions[k] < STILL_MOTION}
+    true_steps = np.linalg.norm(np.diff(seq.groundtruth.positions, axis=0), axis=1)
+    pause = {k for k in motions if true_steps[k - 1] < 1e-9}  # the same pose as the frame before
+    assert len(pause) == lay.pause_frames
+    assert still == pause, (sorted(still), sorted(pause), {k: round(v, 4) for k, v in motions.items()})

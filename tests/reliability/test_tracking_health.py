@@ -1,6 +1,7 @@
 """Tracking health: a sequence whose frames jump (the rig teleports and turns between two
-frames) is a tracking failure with one warning line naming the frame and a count in
-metrics.json; the same sequence without the jump has none."""
+frames). With keypoints the new keyframe is found where it is (multi-camera PnP against the
+keyframes before the jump). Without them it is a tracking failure with one warning line
+naming the frame and a count in metrics.json; the same sequence without the jump has none."""
 
 import json
 
@@ -16,8 +17,9 @@ from mcgs_warp.system.run import run_sequence
 JUMP_AT = 4
 
 
-def config():
+def config(keypoints: bool = True):
     cfg = RunConfig()
+    cfg.tracking.keypoints = keypoints
     cfg.tracking.mcba_iterations = 2
     cfg.mapping.iterations_per_keyframe = 2
     cfg.refinement.global_ba_iterations = 0
@@ -40,7 +42,7 @@ def test_a_jump_is_a_tracking_failure(tmp_path, capfd, jump):
     n = 7
     generate(tmp_path / "data", n_cameras=2, seed=3, progress=False, depth="exact", trajectory=jumping_trajectory(n) if jump else rig_trajectory(n))
     capfd.readouterr()
-    metrics = run_sequence(tmp_path / "data", tmp_path / "run", config(), progress=False)
+    metrics = run_sequence(tmp_path / "data", tmp_path / "run", config(keypoints=False), progress=False)
     err = capfd.readouterr().err
     saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
     warnings = [line for line in err.splitlines() if "tracking failure" in line]
@@ -51,3 +53,23 @@ def test_a_jump_is_a_tracking_failure(tmp_path, capfd, jump):
     else:
         assert saved["tracking_failures"] == 0 and not warnings, err
         assert metrics["ate_se3_rmse_m"] < 0.01
+
+
+def test_keypoints_find_the_rig_after_a_jump(tmp_path):
+    """The keyframe after the jump is anchored by keypoints: every keyframe pose from the jump
+    on is within 5 cm and 0.5 degrees of the truth (both relative to the first pose)."""
+    from mcgs_warp.data.trajectory import read_tum
+    from mcgs_warp.geometry import invert, pose_distance
+
+    n = 7
+    generate(tmp_path / "data", n_cameras=2, seed=3, progress=False, depth="exact", trajectory=jumping_trajectory(n))
+    metrics = run_sequence(tmp_path / "data", tmp_path / "run", config(), progress=False)
+    kfs = read_tum(tmp_path / "run" / "keyframes.txt")
+    gt = read_tum(tmp_path / "data" / "groundtruth.txt")
+    frames = [int(np.argmin(np.abs(gt.timestamps - t))) for t in kfs.timestamps]
+    assert any(f >= JUMP_AT for f in frames[1:])
+    for T, f in zip(kfs.poses, frames):
+        if f >= JUMP_AT:
+            dt, dr = pose_distance(invert(kfs.poses[0]) @ T, invert(gt.poses[frames[0]]) @ gt.poses[f])
+            assert dt < 0.05 and np.degrees(dr) < 0.5, (f, dt, np.degrees(dr))
+    assert metrics["keypoint_anchored"] >= 1 and metrics["tracking_failures"] == 0

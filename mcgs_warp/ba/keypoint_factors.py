@@ -1,0 +1,174 @@
+"""Keypoint reprojection factors inside MCBA (issue: keypoints keep the poses where the
+dense grid matches are few).
+
+A keypoint track is one 3D point seen by several keyframe views: it has a source view
+(slot ``i``, camera ``ci``, unit-depth ray ``r``) and its own inverse depth ``d``, exactly
+like a grid pixel, and observations in other views (slot ``j``, camera ``cj``, observed
+pixel ``p``) with a weight. The residual is the dense one, ``Pi_cj(T_cj_ci r / d) - p`` in
+reduced-grid pixels (full-resolution pixels / stride), with the same robust Huber cost, so
+the two kinds of factor add up in one Gauss-Newton system. Each track's depth couples only
+to the poses its observations touch: the depth block stays diagonal and is eliminated by
+the same Schur complement (eq. 10) before the reduced camera system is solved; the terms
+here are added to it. NumPy, float64: a window holds a few thousand observations.
+
+Pose increments are right-multiplied in the body frame, ``(rho, phi)`` (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..kernels import reference
+
+DEPTH_DAMPING = 1.0e4  # as kernels/ba.py: Q = 1 / (C (1 + lambda) + lambda DEPTH_DAMPING)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[N,3] -> [N,3,3] cross-product matrices."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+@dataclass
+class KeypointProblem:
+    """The keypoint tracks of one MCBA window (slots index the window's keyframes)."""
+
+    src_slot: np.ndarray  # [T] int
+    src_cam: np.ndarray  # [T] int
+    rays: np.ndarray  # [T,3] unit-depth rays of the source keypoints (source camera frame)
+    disp: np.ndarray  # [T] float64 inverse depth along them, 1/m
+    obs_track: np.ndarray  # [O] int
+    obs_slot: np.ndarray  # [O] int
+    obs_cam: np.ndarray  # [O] int
+    obs_uv: np.ndarray  # [O,2] observed full-resolution pixels
+    obs_weight: np.ndarray  # [O] confidence of each observation
+
+    def __len__(self) -> int:
+        return len(self.obs_track)
+
+
+class KeypointFactors:
+    """Linearization, Schur terms, candidate and cost of a :class:`KeypointProblem` for
+    :meth:`mcgs_warp.ba.mcba.MCBA.solve` (same Huber threshold, same grid-pixel units)."""
+
+    def __init__(self, problem: KeypointProblem, rig, stride: int, huber_delta: float, min_disp: float):
+        self.p, self.stride, self.delta, self.min_disp = problem, stride, huber_delta, min_disp
+        self.cams = [c.warp_camera() for c in rig.cameras]
+        self.T_b_c = np.stack([c.T_b_c for c in rig.cameras])
+        self.disp = problem.disp.astype(np.float64).copy()
+        self.disp_c = self.disp.copy()
+
+    # geometry --------------------------------------------------------------------------
+    def _points(self, poses: np.ndarray, disp: np.ndarray):
+        """Per observation: X_bi, X_w, X_bj, X_cj [O,3] at window poses [n,4,4]."""
+        p = self.p
+        t = p.obs_track
+        X_ci = p.rays[t] / disp[t, None]
+        Tbc_i = self.T_b_c[p.src_cam[t]]
+        X_bi = np.einsum("oij,oj->oi", Tbc_i[:, :3, :3], X_ci) + Tbc_i[:, :3, 3]
+        Twb_i = poses[p.src_slot[t]]
+        X_w = np.einsum("oij,oj->oi", Twb_i[:, :3, :3], X_bi) + Twb_i[:, :3, 3]
+        Twb_j = poses[p.obs_slot]
+        X_bj = np.einsum("oji,oj->oi", Twb_j[:, :3, :3], X_w - Twb_j[:, :3, 3])
+        Tbc_j = self.T_b_c[p.obs_cam]
+        X_cj = np.einsum("oji,oj->oi", Tbc_j[:, :3, :3], X_bj - Tbc_j[:, :3, 3])
+        return X_ci, X_bi, X_w, X_bj, X_cj
+
+    def _project(self, X_cj: np.ndarray, jac: bool = False):
+        """Predicted full-resolution pixels [O,2] (and their Jacobians [O,2,3]), valid [O]."""
+        uv = np.zeros((len(X_cj), 2))
+        J = np.zeros((len(X_cj), 2, 3)) if jac else None
+        valid = np.zeros(len(X_cj), bool)
+        for c, cam in enumerate(self.cams):
+            m = self.p.obs_cam == c
+            if not m.any():
+                continue
+            with np.errstate(all="ignore"):
+                ok = reference.in_domain(cam, X_cj[m])
+                X = np.where(ok[:, None], X_cj[m], [0.0, 0.0, 1.0])
+                uv[m] = reference.project(cam, X)
+                if jac:
+                    J[m] = reference.jacobian(cam, X)
+            valid[m] = ok & np.all(np.isfinite(uv[m]), axis=1)
+        return uv, J, valid
+
+    def residuals(self, poses: np.ndarray, disp: np.ndarray):
+        """Residuals [O,2] (predicted - observed, grid px) and validity [O]."""
+        X_cj = self._points(poses, disp)[-1]
+        uv, _, valid = self._project(X_cj)
+        return (uv - self.p.obs_uv) / self.stride, valid & (disp[self.p.obs_track] > 0)
+
+    def cost(self, poses: np.ndarray, disp: np.ndarray | None = None) -> float:
+        e, valid = self.residuals(poses, self.disp if disp is None else disp)
+        s = np.sqrt(self.p.obs_weight) * np.linalg.norm(e, axis=1)
+        c = np.where(s <= self.delta, 0.5 * s * s, self.delta * (s - 0.5 * self.delta))
+        return float(np.sum(np.where(valid, c, 0.0)))
+
+    def jacobians(self, poses: np.ndarray):
+        """Residuals e [O,2], Jacobians of the prediction w.r.t. pose i [O,2,6], pose j
+        [O,2,6] and inverse depth [O,2] (grid px), validity [O]."""
+        p = self.p
+        t = p.obs_track
+        X_ci, X_bi, X_w, X_bj, X_cj = self._points(poses, self.disp)
+        uv, Jp, valid = self._project(X_cj, jac=True)
+        Jp = Jp / self.stride
+        R_cj_b = np.transpose(self.T_b_c[p.obs_cam][:, :3, :3], (0, 2, 1))
+        R_bj_w = np.transpose(poses[p.obs_slot][:, :3, :3], (0, 2, 1))
+        R_w_bi = poses[p.src_slot[t]][:, :3, :3]
+        R_bi_ci = self.T_b_c[p.src_cam[t]][:, :3, :3]
+        A_j = Jp @ R_cj_b  # d uv / d X_bj
+        A_w = A_j @ R_bj_w  # d uv / d X_w
+        dXbi_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(t), 3, 3)), -_skew(X_bi)], axis=2)  # d (Exp(xi) X_bi) / d (rho, phi)
+        J_i = A_w @ R_w_bi @ dXbi_dxi
+        J_j = A_j @ np.concatenate([-np.broadcast_to(np.eye(3), (len(t), 3, 3)), _skew(X_bj)], axis=2)
+        dX_ci_dd = -X_ci / self.disp[t, None]
+        J_d = np.einsum("oij,oj->oi", A_w @ R_w_bi @ R_bi_ci, dX_ci_dd)
+        e = (uv - p.obs_uv) / self.stride
+        return e, J_i, J_j, J_d, valid & (self.disp[t] > 0)
+
+    # Gauss-Newton terms -----------------------------------------------------------------
+    def reduced_terms(self, poses: np.ndarray, lam: float):
+        """The keypoint part of the reduced camera system: ``S`` [6n,6n] and ``rhs`` [6n]
+        (to add to MCBA's, same sign convention: the step solves ``S dxi = rhs``)."""
+        p, n = self.p, len(poses)
+        e, J_i, J_j, J_d, valid = self.jacobians(poses)
+        s = np.sqrt(p.obs_weight) * np.linalg.norm(e, axis=1)
+        W = np.where(valid, p.obs_weight * np.where(s <= self.delta, 1.0, self.delta / np.maximum(s, 1e-300)), 0.0)
+        A = np.concatenate([J_i, J_j], axis=2)  # [O,2,12]
+        idx = np.concatenate([6 * p.src_slot[p.obs_track][:, None] + np.arange(6), 6 * p.obs_slot[:, None] + np.arange(6)], axis=1)  # [O,12]
+        S = np.zeros((6 * n, 6 * n))
+        g = np.zeros(6 * n)
+        np.add.at(S, (idx[:, :, None], idx[:, None, :]), W[:, None, None] * np.einsum("oki,okj->oij", A, A))
+        np.add.at(g, idx, W[:, None] * np.einsum("oki,ok->oi", A, e))
+        T = len(p.disp)
+        C = np.zeros(T)
+        b = np.zeros(T)
+        E = np.zeros((T, 6 * n))
+        np.add.at(C, p.obs_track, W * np.einsum("ok,ok->o", J_d, J_d))
+        np.add.at(b, p.obs_track, W * np.einsum("ok,ok->o", J_d, e))
+        np.add.at(E, (p.obs_track[:, None], idx), W[:, None] * np.einsum("oki,ok->oi", A, J_d))
+        Q = np.where(C > 0, 1.0 / (C * (1.0 + lam) + lam * DEPTH_DAMPING), 0.0)
+        self._C, self._b, self._E, self._Q = C, b, E, Q
+        return S - E.T @ (Q[:, None] * E), -g + E.T @ (Q * b)
+
+    def candidate(self, dxi: np.ndarray) -> None:
+        """Back-substituted inverse depths ``max(d + Q (-b - E dxi), min_disp)`` of the last
+        :meth:`reduced_terms` into ``disp_c``."""
+        dd = self._Q * (-self._b - self._E @ dxi)
+        self.disp_c = np.where(self.disp > 0, np.maximum(self.disp + dd, self.min_disp), 0.0)
+
+    def accept(self) -> None:
+        self.disp = self.disp_c.copy()
+
+
+def window_poses(poses7) -> np.ndarray:
+    """[n,4,4] float64 rig poses of a window's ``wp.transform`` array (host copy)."""
+    from ..geometry import transform7_to_matrix
+
+    return transform7_to_matrix(np.asarray(poses7, np.float64))
+

@@ -1,0 +1,109 @@
+"""Keypoint tracking: each new rig frame's pose from its keypoints matched against keyframes.
+
+The stage that anchors a new keyframe before MCBA (ORB-SLAM's "track reference keyframe",
+here for a whole rig): keypoints of every view (:mod:`.keypoints`), matched (mutual, ratio
+test) against the keypoints of recent keyframes in the same camera and in the cameras that
+overlap it, whose 3D points come from sensor depth or rig stereo at detection, or else from
+the keyframe's solved depth where correspondences measured it; then one multi-camera PnP
+(:mod:`.pnp`) with the constant-velocity guess as one more RANSAC hypothesis. The same call
+relocalizes a lost keyframe against any keyframes (no guess).
+
+Inputs: the rig, which camera pairs overlap, and per call the keyframe poses and a
+depth lookup; it owns nothing of the buffer (keyframe keypoints are kept here, by keyframe).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..rig import Rig
+from .keypoints import KeypointDetector, ViewKeypoints, mutual_matches
+from .pnp import PnPResult, RigObservations, RigPnP
+
+
+@dataclass
+class KeypointConfig:
+    features: int = 1000  # SIFT keypoints per view
+    ratio: float = 0.8  # Lowe's ratio test (nearest / second nearest descriptor distance)
+    inlier_rad: float = 0.004  # rad: PnP inlier threshold, as an angle between bearings (about 1.5 px at KITTI's 640 px, 0.7 px on 320 px synthetic views)
+    min_inliers: int = 20  # a PnP pose with fewer inliers is no pose
+    min_inlier_ratio: float = 0.25  # ... and so is one explaining less than this share of the matches
+    keyframes: int = 3  # match a new keyframe against this many recent keyframes
+
+
+class KeypointTracker:
+    def __init__(self, rig: Rig, overlap: np.ndarray | None = None, stereo_pairs=(), config: KeypointConfig | None = None, seed: int = 0):
+        """``overlap`` [C,C] (view overlap of the rig's cameras, :func:`camera_overlap`) says
+        which cameras a view is matched against besides its own; ``stereo_pairs`` (a, b) are
+        triangulated at detection."""
+        self.cfg = cfg = config or KeypointConfig()
+        self.rig = rig
+        C = len(rig)
+        self.partners = [[c] + [d for d in range(C) if d != c and overlap is not None and overlap[c, d] > 0] for c in range(C)]
+        self.detector = KeypointDetector(rig, stereo_pairs, features=cfg.features, ratio=cfg.ratio)
+        self.pnp = RigPnP(rig, inlier_rad=cfg.inlier_rad, seed=seed)
+        self.views: dict[int, list[ViewKeypoints]] = {}  # keyframe -> its keypoints per camera
+
+    def detect(self, images, depths=None) -> list[ViewKeypoints]:
+        return self.detector.detect(images, depths)
+
+    def keep(self, k: int, views: list[ViewKeypoints]) -> None:
+        self.views[k] = views
+
+    def points_w(self, k: int, T_w_b: np.ndarray, depth_at=None) -> list[np.ndarray]:
+        """World points [M,3] (NaN where unknown) of keyframe ``k``'s keypoints per camera:
+        their own depth (sensor, stereo), else ``depth_at(k, c, uv)`` -> depth [M] (m, 0 =
+        unmeasured), the keyframe's solved depth."""
+        out = []
+        for c, v in enumerate(self.views[k]):
+            P = v.points.copy()
+            if depth_at is not None and len(v):
+                free = ~v.has_depth
+                if free.any():
+                    z = depth_at(k, c, v.uv[free])
+                    P[free] = np.where((z > 0)[:, None], v.rays[free] * z[:, None], np.nan)
+            T = T_w_b @ self.rig.cameras[c].T_b_c
+            out.append(P @ T[:3, :3].T + T[:3, 3])
+        return out
+
+    def observations(self, views: list[ViewKeypoints], keyframes, poses: np.ndarray, depth_at=None):
+        """2D-3D matches of ``views`` (a new frame) against ``keyframes`` (their rig poses
+        ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame, and per
+        set the matched keypoints ``(keyframe, camera, index there, index here)`` [M,4]."""
+        obs, pairs = [], []
+        for c, v in enumerate(views):
+            b, X, who = [], [], []
+            for k in keyframes:
+                if k not in self.views:
+                    continue
+                pts = self.points_w(k, poses[k], depth_at)
+                for d in self.partners[c]:
+                    kv = self.views[k][d]
+                    ok = np.isfinite(pts[d][:, 0])
+                    if ok.sum() < 3 or len(v) < 3:
+                        continue
+                    idx = np.nonzero(ok)[0]
+                    m = mutual_matches(v.desc, kv.desc[idx], self.cfg.ratio)
+                    b.append(v.bearings[m[:, 0]])
+                    X.append(pts[d][idx[m[:, 1]]])
+                    who.append(np.stack([np.full(len(m), k), np.full(len(m), d), idx[m[:, 1]], m[:, 0]], 1))
+            if b:
+                obs.append(RigObservations(c, np.concatenate(b), np.concatenate(X)))
+                pairs.append(np.concatenate(who))
+        return obs, pairs
+
+    def localize(self, views, keyframes, poses, depth_at=None, guess=None) -> PnPResult | None:
+        """The rig pose of a frame with keypoints ``views`` from matches against
+        ``keyframes``; None when no pose has enough support (``min_inliers`` and
+        ``min_inlier_ratio``). ``guess`` (constant velocity) competes as a hypothesis. The
+        result's ``matches`` [M,5] are its inlier matches ``(keyframe, camera there, index
+        there, camera here, index here)`` (:class:`~mcgs_warp.ba.keypoint_tracks.KeypointTracks` links them)."""
+        obs, pairs = self.observations(views, keyframes, poses, depth_at)
+        res = self.pnp.solve(obs, guess=guess, min_inliers=self.cfg.min_inliers)
+        if res is None or res.inlier_ratio < self.cfg.min_inlier_ratio:
+            return None
+        rows = [np.concatenate([p[m][:, :3], np.full((int(m.sum()), 1), o.camera), p[m][:, 3:4]], 1) for o, p, m in zip(obs, pairs, res.inliers)]
+        res.matches = np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 5), np.int64)
+        return res
