@@ -76,9 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
                      "cameras), none, or auto (default: sensor when every frame has depth, "
                      "else stereo when cameras overlap, else none)")
-    run.add_argument("--correspondences", choices=("estimated", "ground-truth"), default=None,
-                     help="estimated (default) or ground-truth: exact correspondences from the sequence's gt/ depth "
-                     "and groundtruth.txt (synthetic sequences), to measure the back end without the front end")
+    run.add_argument("--correspondences", choices=("estimated", "ground-truth", "none"), default=None,
+                     help="estimated (default), ground-truth: exact correspondences from the sequence's gt/ depth "
+                     "and groundtruth.txt (synthetic sequences), to measure the back end without the front end, or none: "
+                     "no dense correspondences, keypoint tracks alone (the sparse core, to measure what the dense edges add)")
     run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
     run.add_argument("--every", type=int, default=1, metavar="N",
                      help="keep every N-th frame (default 1: all): a high-rate camera at a lower rate; frame numbers in messages count the kept frames")

@@ -21,6 +21,7 @@ class KeypointTracks:
     def __init__(self, weight: float = 1.0):
         self.weight = weight  # confidence of each keypoint observation (dense correspondences: DIS confidence in [0, 1])
         self.base: dict = {}  # (keyframe, camera) -> first node id of its keypoints
+        self.count: dict = {}  # (keyframe, camera) -> number of its keypoints
         self.parent: list = []
         self.points: dict = {}  # root -> world point [3] as last solved
         self.nodes: list = []  # node id -> (keyframe, camera, index)
@@ -29,7 +30,7 @@ class KeypointTracks:
         """Nodes for keyframe ``k``'s keypoints (``views`` [C] of ViewKeypoints), joined by
         their stereo matches."""
         for c, v in enumerate(views):
-            self.base[(k, c)] = len(self.parent)
+            self.base[(k, c)], self.count[(k, c)] = len(self.parent), len(v)
             self.parent.extend(range(len(self.parent), len(self.parent) + len(v)))
             self.nodes.extend((k, c, i) for i in range(len(v)))
         for c, v in enumerate(views):
@@ -43,6 +44,17 @@ class KeypointTracks:
         for j, d, b, c, a in np.asarray(matches, np.int64).tolist():
             if (j, d) in self.base and (k, c) in self.base:
                 self._union(self.base[(j, d)] + b, self.base[(k, c)] + a)
+
+    def world_points(self, k: int, c: int) -> np.ndarray:
+        """[M,3] solved world points of keyframe ``k``'s camera-``c`` keypoints (NaN where their
+        track has none yet)."""
+        base, n = self.base[(k, c)], self.count[(k, c)]
+        out = np.full((n, 3), np.nan)
+        for i in range(n):
+            p = self.points.get(self._find(base + i))
+            if p is not None:
+                out[i] = p
+        return out
 
     def _find(self, x: int) -> int:
         p = self.parent
@@ -71,8 +83,7 @@ class KeypointTracks:
                 base = self.base.get((k, c))
                 if base is None:
                     continue
-                n = len(views_of(k)[c])
-                for i in range(n):
+                for i in range(self.count[(k, c)]):
                     groups.setdefault(self._find(base + i), []).append((k, c, i))
         src_slot, src_cam, rays, disp, roots = [], [], [], [], []
         o_t, o_s, o_c, o_uv = [], [], [], []

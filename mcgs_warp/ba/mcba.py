@@ -31,6 +31,7 @@ rest of the problem is still solved.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,9 +174,12 @@ class MCBA:
                     Sf = S[np.ix_(free_idx, free_idx)]
                     Sf = Sf + lam * np.diag(np.diag(Sf)) + 1e-9 * np.eye(len(free_idx))
                     try:
-                        dxi[free_idx] = scipy.linalg.solve(Sf, rhs[free_idx], assume_a="sym")
-                    except (np.linalg.LinAlgError, ValueError):
-                        dxi[:] = 0.0
+                        # an ill-conditioned system (SciPy's LinAlgWarning) is no step: more damping
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
+                            dxi[free_idx] = scipy.linalg.solve(Sf, rhs[free_idx], assume_a="sym")
+                    except (np.linalg.LinAlgError, ValueError, scipy.linalg.LinAlgWarning):
+                        dxi[:] = np.nan
                 if not (np.all(np.isfinite(dxi)) and win.candidate(dxi, lam)):
                     lam *= 10.0
                     stats.rejected += 1

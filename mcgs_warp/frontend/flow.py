@@ -29,6 +29,15 @@ class FlowProvider:
         raise NotImplementedError
 
 
+class NoCorrespondences(FlowProvider):
+    """Every edge without a correspondence (``--correspondences none``: the sparse core of
+    the system, keypoint tracks alone in MCBA, as an ablation)."""
+
+    def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
+        E = len(edges)
+        return np.zeros((E, buffer.h, buffer.w, 2), np.float32), np.zeros((E, buffer.h, buffer.w), np.float32)
+
+
 #: grey-level std (images in [0, 1]) of a 7x7 window below which a pixel's match carries no
 #: information: a flat patch (overexposed sky, a blank wall) matches itself anywhere nearby,
 #: and both the forward-backward check and the patch SAD pass it. Such grid pixels get weight 0

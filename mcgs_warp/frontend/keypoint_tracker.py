@@ -52,9 +52,10 @@ class KeypointTracker:
     def keep(self, k: int, views: list[ViewKeypoints]) -> None:
         self.views[k] = views
 
-    def points_w(self, k: int, T_w_b: np.ndarray, depth_at=None) -> list[np.ndarray]:
+    def points_w(self, k: int, T_w_b: np.ndarray, depth_at=None, solved=None) -> list[np.ndarray]:
         """World points [M,3] (NaN where unknown) of keyframe ``k``'s keypoints per camera:
-        their own depth (sensor, stereo), else ``depth_at(k, c, uv)`` -> depth [M] (m, 0 =
+        ``solved(k, c)`` -> [M,3] world points of their tracks as MCBA last solved them,
+        else their own depth (sensor, stereo), else ``depth_at(k, c, uv)`` -> depth [M] (m, 0 =
         unmeasured), the keyframe's solved depth."""
         out = []
         for c, v in enumerate(self.views[k]):
@@ -65,10 +66,14 @@ class KeypointTracker:
                     z = depth_at(k, c, v.uv[free])
                     P[free] = np.where((z > 0)[:, None], v.rays[free] * z[:, None], np.nan)
             T = T_w_b @ self.rig.cameras[c].T_b_c
-            out.append(P @ T[:3, :3].T + T[:3, 3])
+            X = P @ T[:3, :3].T + T[:3, 3]
+            if solved is not None and len(v):
+                S = solved(k, c)
+                X = np.where(np.isfinite(S[:, :1]), S, X)
+            out.append(X)
         return out
 
-    def observations(self, views: list[ViewKeypoints], keyframes, poses: np.ndarray, depth_at=None):
+    def observations(self, views: list[ViewKeypoints], keyframes, poses: np.ndarray, depth_at=None, solved=None):
         """2D-3D matches of ``views`` (a new frame) against ``keyframes`` (their rig poses
         ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame, and per
         set the matched keypoints ``(keyframe, camera, index there, index here)`` [M,4]."""
@@ -78,7 +83,7 @@ class KeypointTracker:
             for k in keyframes:
                 if k not in self.views:
                     continue
-                pts = self.points_w(k, poses[k], depth_at)
+                pts = self.points_w(k, poses[k], depth_at, solved)
                 for d in self.partners[c]:
                     kv = self.views[k][d]
                     ok = np.isfinite(pts[d][:, 0])
@@ -94,13 +99,14 @@ class KeypointTracker:
                 pairs.append(np.concatenate(who))
         return obs, pairs
 
-    def localize(self, views, keyframes, poses, depth_at=None, guess=None) -> PnPResult | None:
+    def localize(self, views, keyframes, poses, depth_at=None, guess=None, solved=None) -> PnPResult | None:
         """The rig pose of a frame with keypoints ``views`` from matches against
         ``keyframes``; None when no pose has enough support (``min_inliers`` and
-        ``min_inlier_ratio``). ``guess`` (constant velocity) competes as a hypothesis. The
+        ``min_inlier_ratio``). ``guess`` (constant velocity) competes as a hypothesis;
+        ``depth_at`` and ``solved`` give keypoints their 3D points (:meth:`points_w`). The
         result's ``matches`` [M,5] are its inlier matches ``(keyframe, camera there, index
         there, camera here, index here)`` (:class:`~mcgs_warp.ba.keypoint_tracks.KeypointTracks` links them)."""
-        obs, pairs = self.observations(views, keyframes, poses, depth_at)
+        obs, pairs = self.observations(views, keyframes, poses, depth_at, solved)
         res = self.pnp.solve(obs, guess=guess, min_inliers=self.cfg.min_inliers)
         if res is None or res.inlier_ratio < self.cfg.min_inlier_ratio:
             return None

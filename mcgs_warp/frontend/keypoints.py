@@ -68,6 +68,24 @@ def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -
     return np.stack([a, ab[a]], 1)
 
 
+def masked_matches(desc_a: np.ndarray, desc_b: np.ndarray, allowed: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """Pairs [P,2] (index in a, index in b) matched among ``allowed`` [Ma,Mb] candidates only
+    (an epipolar band, a search window around a predicted position): the best descriptor
+    there, mutual, and below ``ratio`` times the second best there."""
+    if not allowed.any():
+        return np.zeros((0, 2), np.int64)
+    d2 = (desc_a**2).sum(1)[:, None] + (desc_b**2).sum(1)[None] - 2.0 * desc_a @ desc_b.T
+    d2 = np.where(allowed, np.maximum(d2, 0.0), np.inf)
+    ia = np.arange(len(desc_a))
+    ib = np.argmin(d2, 1)
+    best = d2[ia, ib]
+    d2[ia, ib] = np.inf
+    second = d2.min(1)
+    d2[ia, ib] = best
+    ok = np.isfinite(best) & (np.sqrt(best) < ratio * np.sqrt(second)) & (np.argmin(d2, 0)[ib] == ia)
+    return np.stack([ia[ok], ib[ok]], 1)
+
+
 def triangulate(T_a_b: np.ndarray, bear_a: np.ndarray, bear_b: np.ndarray):
     """Midpoint triangulation of rays ``bear_a`` [P,3] (frame a) and ``bear_b`` [P,3] (frame b):
     points [P,3] in frame a, and the ray ranges [P] along a and along b (negative: behind)."""
@@ -167,16 +185,8 @@ class KeypointDetector:
         n = np.cross(va.bearings, T_a_b[:3, 3] / baseline)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         band = np.abs(n @ (vb.bearings @ T_a_b[:3, :3].T).T) < self.epipolar_rad  # [Ma,Mb]
-        d2 = (va.desc**2).sum(1)[:, None] + (vb.desc**2).sum(1)[None] - 2.0 * va.desc @ vb.desc.T
-        d2 = np.where(band, np.maximum(d2, 0.0), np.inf)
-        ia = np.arange(len(va))
-        ib = np.argmin(d2, 1)
-        best = d2[ia, ib]
-        d2[ia, ib] = np.inf
-        second = d2.min(1)
-        d2[ia, ib] = best
-        ok = np.isfinite(best) & (np.sqrt(best) < self.ratio * np.sqrt(second)) & (np.argmin(d2, 0)[ib] == ia)
-        ia, ib = ia[ok], ib[ok]
+        m = masked_matches(va.desc, vb.desc, band, self.ratio)
+        ia, ib = m[:, 0], m[:, 1]
         ba, bb = va.bearings[ia], self._refined(a, b, ia, ib, views)
         X, s, r = triangulate(T_a_b, ba, bb)
         rng = np.linalg.norm(X, axis=1)

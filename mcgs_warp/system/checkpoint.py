@@ -46,7 +46,7 @@ class Checkpointing:
             **(self.tracks.state_arrays() if self.tracks is not None else {}),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "lost": self.lost, "carried": self._carried, "lost_span": self._lost_span, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -138,6 +138,7 @@ class Checkpointing:
             self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
             self.seconds = meta["seconds"]
             self.health = meta["health"]
+            self.lost, self._carried, self._lost_span = [int(k) for k in meta["lost"]], bool(meta["carried"]), meta["lost_span"]
             self.frame_motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
             kf_frames = [int(v) for v in a["kf_frames"]]
         except KeyError as e:

@@ -29,7 +29,8 @@ class KeyframeStep:
         computes new non-cross-view edges that way from the start (global BA's long edges:
         their keyframes are already solved, their motion too large for raw DIS), and so does
         exact sensor depth (its prediction is good from the first solve on). With
-        ``--correspondences ground-truth`` every edge is exact (oracle)."""
+        ``--correspondences ground-truth`` every edge is exact (oracle); with ``none`` no
+        edge has any (:class:`NoCorrespondences`)."""
         g = self.graph
         if self.oracle is None and refresh:
             g.refresh(self.guided, refresh)
@@ -112,7 +113,7 @@ class KeyframeStep:
         why = None
         if all(st.accepted == 0 for st, _ in rounds) and any(st.cost for st, _ in rounds):
             why = "no MCBA step accepted"
-        elif frac < th.min_confident:
+        elif frac < th.min_confident and th.correspondences != "none":
             why = f"only {100 * frac:.1f} % of its pixels have a confident correspondence (tracking.min_confident {100 * th.min_confident:g} %)"
         elif usual is not None and np.isfinite(level) and level > th.max_residual_ratio * usual:
             why = f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
@@ -156,7 +157,7 @@ class KeyframeStep:
             views = self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
             if len(buf):
                 recent = list(range(max(0, len(buf) - self.keypoints.cfg.keyframes), len(buf)))
-                self._anchor = self.keypoints.localize(views, recent, poses, self._keypoint_depth, guess=T_init)
+                self._anchor = self.keypoints.localize(views, recent, poses, self._keypoint_depth, guess=T_init, solved=self._solved_points)
                 if self._anchor is not None:
                     T_init = self._anchor.T_w_b
         depths, confs = self.prior.with_confidence(frame, self.seq.rig)
@@ -182,9 +183,41 @@ class KeyframeStep:
             self.graph.update_window(window, cross_view=self.overlap is not None)
             self._link_newest(k)
             why = self._health(k, self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :])))
-            if why is not None:
-                self._recover(k, window, T_init, disp, why)
+            tracked = why is None or self._recover(k, window, T_init, disp, why)
+            self._track_state(k, tracked)
         return k
+
+    def _track_state(self, k: int, tracked: bool) -> None:
+        """Lost tracking: constant velocity carries the pose through one failed keyframe at
+        most. A second one in a row that nothing relocalizes is lost, and so is every one
+        after it until a keyframe tracks again: lost keyframes keep the prediction (the
+        trajectory needs a pose) but are not mapped, and the span gets one warning line when
+        tracking resumes (or at the end, :meth:`close_lost_span`)."""
+        if tracked:
+            self._carried = False
+            self.close_lost_span(resumed_at=int(self.buf.frame_index[k]))
+            return
+        if self._carried:
+            self.lost.append(k)
+            frame = int(self.buf.frame_index[k])
+            self._lost_span = [frame if self._lost_span is None else self._lost_span[0], frame, (0 if self._lost_span is None else self._lost_span[2]) + 1]
+        self._carried = True
+
+    def close_lost_span(self, resumed_at: int | None = None) -> None:
+        """Say that tracking was lost (one warning line with the span), once it has ended."""
+        from ..data.sequence import warn
+
+        if self._lost_span is None:
+            return
+        a, b, n = self._lost_span
+        end = f"tracking resumed at frame {resumed_at}" if resumed_at is not None else "it never resumed"
+        warn(None, f"frames {a}-{b} ({n} keyframe{'s' if n > 1 else ''}): tracking lost, nothing relocalized them; their poses are the constant-velocity prediction and they are not mapped; {end}")
+        self._lost_span = None
+
+    @property
+    def _solved_points(self):
+        """World points of keypoint tracks as MCBA solved them (None without tracks)."""
+        return self.tracks.world_points if self.tracks is not None else None
 
     def _keypoint_depth(self, k: int, c: int, uv: np.ndarray) -> np.ndarray:
         """Solved depth [M] (m, 0 where nothing measured it) of keyframe ``k``, camera ``c``,
@@ -199,13 +232,14 @@ class KeyframeStep:
         d = disp[gy, gx]
         return np.where(inside & ok[gy, gx] & (d > 0), 1.0 / np.maximum(d, 1e-12), 0.0)
 
-    def _recover(self, k: int, window, T_init: np.ndarray, disp0: np.ndarray, why: str) -> None:
+    def _recover(self, k: int, window, T_init: np.ndarray, disp0: np.ndarray, why: str) -> bool:
         """A tracking failure at keyframe ``k``: one warning line, then re-initialize it,
         relocalized by its keypoints against every keyframe where they give a pose (else
         from ``T_init``, the keypoint or constant-velocity start), with start depth
         ``disp0``; drop its correspondences, match them again from that start (guided by the
         older keyframes' solved depth, plain DIS where the start cannot guide) and solve
-        again. If that fails too, ``k`` keeps the start."""
+        again. If that fails too, ``k`` keeps the start. Returns whether ``k`` is tracked:
+        solved, or at least placed by its keypoints (not by constant velocity alone)."""
         from ..data.sequence import warn
 
         buf = self.buf
@@ -213,7 +247,7 @@ class KeyframeStep:
         start, how = T_init, "the keypoint pose" if self._anchor is not None else "the constant-velocity prediction"
         if self.keypoints is not None and k in self.keypoints.views:
             others = [j for j in range(len(buf)) if j != k]
-            reloc = self.keypoints.localize(self.keypoints.views[k], others, buf.get_poses(), self._keypoint_depth)
+            reloc = self.keypoints.localize(self.keypoints.views[k], others, buf.get_poses(), self._keypoint_depth, solved=self._solved_points)
             if reloc is not None:
                 start, how = reloc.T_w_b, f"relocalized by keypoints ({reloc.n_inliers} inliers)"
                 self._anchor = reloc
@@ -228,9 +262,10 @@ class KeyframeStep:
         second = self._health(k, self._solve(window))
         if second is None:
             warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); recovered from {how}")
-            return
+            return True
         buf.set_poses(start[None], start=k)
         warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}; again after re-matching: {second}); keyframe {k} keeps {how}")
+        return self._anchor is not None
 
     def _link_newest(self, k: int) -> None:
         """A new keyframe whose views overlap no one else's by the graph's measure (a fast

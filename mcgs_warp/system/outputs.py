@@ -217,6 +217,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "seconds_total": float(seconds_total),
         "tracking_failures": len(slam.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)
         "tracking_failure_frames": slam.failures,
+        "tracking_lost_frames": [int(buf.frame_index[k]) for k in slam.lost],  # keyframes nothing tracked or relocalized (kept at the prediction, not mapped)
         "confident_fraction": _quantiles([h["confident"] for h in slam.health]),  # per keyframe solve: fraction of its grid pixels with a confident correspondence (min, median)
         "confident_fraction_per_camera": {c.name: _quantiles([h["confident_per_camera"][i] for h in slam.health]) for i, c in enumerate(seq.rig.cameras)} if slam.health else None,
         "keypoint_inliers": _quantiles([h["keypoint_inliers"] or 0 for h in slam.health]) if slam.keypoints is not None else None,  # per keyframe solve: PnP inliers of its keypoint pose (0: none; min, median)

@@ -29,7 +29,7 @@ from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
 from ..data.trajectory import Trajectory
 from ..frontend.depth import choose_prior
-from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, SequenceGroundTruthFlow, StereoMatches
+from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, NoCorrespondences, SequenceGroundTruthFlow, StereoMatches
 from ..frontend.keyframes import KeyframeSelector
 from ..frontend.keypoint_tracker import KeypointTracker
 from ..frontend.stereo import RigStereo
@@ -98,7 +98,11 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         # Cross-view edges (eq. 8) constrain only depth; exact sensor depth already fixes it,
         # so with it they cost their sweeps and change nothing (demo: 4.3 vs 4.5 mm SE(3) ATE).
         self.overlap = rig_overlap if tc.cross_view and not self.exact_depth else None
-        self.oracle = SequenceGroundTruthFlow(sequence) if tc.correspondences == "ground-truth" else None
+        self.oracle = SequenceGroundTruthFlow(sequence) if tc.correspondences == "ground-truth" else NoCorrespondences() if tc.correspondences == "none" else None
+        if tc.correspondences == "none" and not (tc.keypoints and tc.keypoint_weight > 0):
+            from ..errors import InputError
+
+            raise InputError(None, "tracking.correspondences", "none leaves only the keypoint tracks: it needs tracking.keypoints true and tracking.keypoint_weight above 0")
         self.stereo_matches = StereoMatches(self.stereo)
         self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
@@ -109,6 +113,8 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
         self.frame_motion: dict = {}  # frame index -> image motion (rad) since the frame before it (the keyframe test's flows, :func:`motion`)
+        self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
+        self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
             from ..data.sequence import warn
@@ -176,6 +182,8 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
             # Bootstrap: without exact depth, keyframe 0 waits for the MCBA of keyframe 1,
             # so that no Gaussian is seeded from the constant start depth.
             for m in ([0, k] if k == 1 and not self.exact_depth else [] if k == 0 and not self.exact_depth else [k]):
+                if m in self.lost:
+                    continue
                 self.mapper.add_keyframe(m, self.mapping_depths(self.seq[self.buf.frame_index[m]], m))
                 self._mapped_depth[m] = self.buf.depth(m)
             window = sliding_window(len(self.buf), self.cfg.tracking.window)
@@ -191,6 +199,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
             psnr = self.mapper.history[-1].psnr if self.mapper.history else float("nan")
             self.progress("tracking", idx + 1, n, f"keyframes {len(kf_frames)}  gaussians {len(self.mapper.map)}  psnr {psnr:.1f} dB")
         self.progress.done()
+        self.close_lost_span()
         self.refine()
         traj = self.trajectory(kf_frames)
         curve = [(i, r.loss, r.psnr) for i, r in enumerate(self.mapper.history)]

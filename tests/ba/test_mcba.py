@@ -92,3 +92,26 @@ def test_huber_weighting_shrugs_off_outlier_correspondences(synthetic_seq):
     # measured: 0.6 mm / 0.003 deg robust, 8.6 mm / 0.074 deg plain
     assert robust[0] < 0.0015 and robust[1] < 0.01, robust
     assert plain[0] > 5 * robust[0] and plain[1] > 5 * robust[1], (plain, robust)
+
+
+def test_an_ill_conditioned_system_is_a_rejected_step_not_a_warning(synthetic_seq, monkeypatch):
+    """SciPy's LinAlgWarning (an ill-conditioned reduced system) never reaches the console:
+    MCBA takes it as no step and damps more, so the state stays where it was."""
+    import warnings
+
+    import scipy.linalg
+
+    P = Problem(synthetic_seq, [0, 2])
+    P.perturb(np.random.default_rng(3), trans=0.05, rot_deg=1.0)
+    before = P.buf.get_poses().copy()
+
+    def ill(*args, **kwargs):
+        warnings.warn("Ill-conditioned matrix (rcond=1e-20): result may not be accurate.", scipy.linalg.LinAlgWarning)
+        return np.ones(len(args[1]))
+
+    monkeypatch.setattr(scipy.linalg, "solve", ill)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning that escapes fails the test
+        stats = MCBA(P.buf, MCBAConfig(iterations=2)).solve(P.edges, P.targets, P.weights)
+    assert stats.accepted == 0 and stats.rejected > 0
+    np.testing.assert_array_equal(P.buf.get_poses(), before)

@@ -147,3 +147,25 @@ def test_tum_trajectory_round_trip_and_errors(tmp_path):
     bad.write_text("# only a comment\n")
     with pytest.raises(InputError, match="expected at least 2 poses, got 0"):
         read_tum(bad, min_poses=2)
+
+
+def test_every_nth_frame(tmp_path):
+    """``run --every N``: frame k is frame k*N of the folder (images, depth, time), the ground
+    truth stays whole, and a step that keeps fewer than two frames or is not a whole number
+    is refused naming --every."""
+    from mcgs_warp.data.sequence import EveryNth
+
+    rng = np.random.default_rng(0)
+    write_sequence(tmp_path / "seq", rng, n=7)
+    seq = open_sequence(tmp_path / "seq")
+    sub = EveryNth(seq, 3)
+    assert len(sub) == 3
+    np.testing.assert_array_equal(sub.timestamps, seq.timestamps[[0, 3, 6]])
+    f = sub[2]
+    assert f.index == 2 and f.timestamp == seq.timestamps[6]
+    np.testing.assert_array_equal(f.images[0], seq[6].images[0])
+    np.testing.assert_array_equal(f.depths[1], seq[6].depths[1])
+    assert sub.groundtruth is seq.groundtruth and sub.depth_cameras() == seq.depth_cameras()
+    for bad in (0, 7, 2.5):
+        with pytest.raises(InputError, match="--every"):
+            EveryNth(seq, bad)

@@ -73,3 +73,34 @@ def test_keypoints_find_the_rig_after_a_jump(tmp_path):
             dt, dr = pose_distance(invert(kfs.poses[0]) @ T, invert(gt.poses[frames[0]]) @ gt.poses[f])
             assert dt < 0.05 and np.degrees(dr) < 0.5, (f, dt, np.degrees(dr))
     assert metrics["keypoint_anchored"] >= 1 and metrics["tracking_failures"] == 0
+
+
+def test_a_lost_span_is_said_once_and_left_out_of_the_map(tmp_path, capfd):
+    """Frames 4-7 of a drive hold sensor noise, and every frame is a keyframe: no
+    correspondence and no keypoint places them. Constant velocity carries the first failed
+    keyframe; the rest are lost: one warning line names the span, they are not mapped, and
+    tracking resumes (relocalized by keypoints) when the scene comes back. (With the default
+    keyframe test such frames are no keyframes at all: their flow is small.)"""
+    import cv2
+
+    from mcgs_warp.data.sequence import frame_name
+
+    n, dark = 11, range(4, 8)
+    generate(tmp_path / "data", n_cameras=2, seed=3, progress=False, depth="exact", trajectory=rig_trajectory(n))
+    rng = np.random.default_rng(0)
+    for k in dark:
+        for c in range(2):
+            path = tmp_path / "data" / f"cam{c}" / "rgb" / frame_name(k)
+            shape = cv2.imread(str(path)).shape
+            cv2.imwrite(str(path), rng.integers(0, 256, shape, dtype=np.uint8))
+    capfd.readouterr()
+    cfg = config()
+    cfg.tracking.keyframe_flow = 0.0
+    metrics = run_sequence(tmp_path / "data", tmp_path / "run", cfg, progress=False)
+    err = capfd.readouterr().err
+    lost = [line for line in err.splitlines() if "tracking lost" in line]
+    assert len(lost) == 1, err
+    assert metrics["tracking_lost_frames"] == [5, 6, 7]  # frame 4 is the one constant velocity may carry
+    assert "frames 5-7 (3 keyframes)" in lost[0] and "tracking resumed at frame 8" in lost[0]
+    mapped = np.load(tmp_path / "run" / "checkpoint.npz")["mapped_keys"].tolist()
+    assert not {5, 6, 7} & set(mapped) and {0, 8, 10} <= set(mapped)
