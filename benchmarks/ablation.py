@@ -1,7 +1,7 @@
 """Ablation on held-out synthetic worlds: depth regimes x scenes x seeds, mean and worst.
 
     python benchmarks/ablation.py [--scenes street indoor] [--seeds 11 12 13] [--frames 40]
-        [--modes rgb mono mono-nojdsa exact] [--rigs default] [--realism camera]
+        [--modes rgb mono mono-nojdsa exact rgb-sparse exact-sparse] [--rigs default] [--realism camera]
         [--room] [--oracle] [--out out/ablation]
 
 For every scene (``synth --scene street | indoor | room``; no parameter was tuned on these seeds),
@@ -10,7 +10,9 @@ with realistic errors) and runs the system with the defaults:
 
 * ``rgb``: no depth (the rig's sweep stereo and cross-view edges carry the scale);
 * ``mono``, ``mono-nojdsa``: the monocular-like prior with and without JDSA;
-* ``exact``: exact sensor depth.
+* ``exact``: exact sensor depth;
+* ``rgb-sparse``, ``exact-sparse``: the system's own sparse core on the same data
+  (``--correspondences none``: keypoint tracks in MCBA, no dense correspondences).
 
 ``--rigs front_back one`` repeats the mono modes on rigs where only the prior carries the
 scale (``configs/rig_front_back.yaml``; the first camera alone), the regime JDSA is for.
@@ -40,6 +42,8 @@ MODES = {  # mode: (depth written, JDSA, correspondences)
     "mono": ("mono", True, "estimated"),
     "mono-nojdsa": ("mono", False, "estimated"),
     "exact": ("exact", True, "estimated"),
+    "rgb-sparse": ("none", True, "none"),
+    "exact-sparse": ("exact", True, "none"),
     "rgb-oracle": ("none", True, "ground-truth"),
     "exact-oracle": ("exact", True, "ground-truth"),
 }
@@ -66,6 +70,8 @@ def run_one(out: Path, scene: str, seed: int, mode: str, rig: str, args, realism
         generate(data, n_frames=args.frames, seed=seed, device=args.device, progress=False, depth=depth, rig=rig_for(scene, rig), realism=realism, mono_prior=prior, scene=scene)
     cfg = load_run_config(None)
     cfg.tracking.correspondences = corr
+    if corr == "none":
+        cfg.tracking.keypoint_weight = 1.0  # the keypoint tracks are all there is
     run_dir = out / "runs" / f"{tag}_{mode}"
     m = run_sequence(data, run_dir, cfg, jdsa=jdsa, device=args.device, progress=False)
     print(f"done: {scene} seed {seed} {rig} {mode}: SE(3) ATE {m['ate_se3_percent_of_path']:.3f} % of path, scale {m['sim3_scale']:.4f}, {m['psnr_db']:.1f} dB ({m['seconds_total']:.0f} s)", flush=True)

@@ -15,8 +15,9 @@ from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 
 
-def small_config():
+def small_config(keypoint_weight: float = 0.0):
     cfg = RunConfig()
+    cfg.tracking.keypoint_weight = keypoint_weight
     cfg.tracking.mcba_iterations = 2
     cfg.mapping.iterations_per_keyframe = 3
     cfg.refinement.global_ba_iterations = 1
@@ -29,16 +30,17 @@ def small_config():
 def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, depth, stop):
     """With exact depth the mapping targets are the sensor's; without depth they are
     MCBA's estimates (and the correspondences were re-estimated along the way), which
-    the checkpoint must carry; stopping after keyframe 0 interrupts the bootstrap, before
-    anything was mapped."""
+    the checkpoint must carry, and so are the keypoint tracks in MCBA (on in that case);
+    stopping after keyframe 0 interrupts the bootstrap, before anything was mapped."""
     data = tmp_path / "data"
+    weight = 1.0 if depth == "none" else 0.0
     generate(data, n_cameras=2, n_frames=7, seed=4, progress=False, depth=depth)
-    full = run_sequence(data, tmp_path / "full", small_config(), progress=False)
+    full = run_sequence(data, tmp_path / "full", small_config(weight), progress=False)
     with pytest.raises(KeyboardInterrupt):
-        run_sequence(data, tmp_path / "cut", small_config(), progress=False, stop_after_keyframes=stop)
+        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, stop_after_keyframes=stop)
     assert (tmp_path / "cut" / "checkpoint.npz").is_file()
     assert not (tmp_path / "cut" / "trajectory.txt").exists()  # nothing final before the end
-    resumed = run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+    resumed = run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
     a = read_tum(tmp_path / "full" / "trajectory.txt")
     b = read_tum(tmp_path / "cut" / "trajectory.txt")
     assert full["n_keyframes"] == resumed["n_keyframes"] >= 3
@@ -46,7 +48,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     if wp.get_device().is_cuda:
         # CUDA's float atomics (the renderer's adjoint) sum in a varying order, so two
         # uninterrupted runs already differ: the resumed run may differ no more than that.
-        run_sequence(data, tmp_path / "again", small_config(), progress=False)
+        run_sequence(data, tmp_path / "again", small_config(weight), progress=False)
         spread = np.abs(read_tum(tmp_path / "again" / "trajectory.txt").poses - a.poses).max()
         atol = max(atol, 5 * spread)
     np.testing.assert_allclose(b.positions, a.positions, atol=atol)
@@ -56,7 +58,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     if depth == "exact":
         return
 
-    other = small_config()
+    other = small_config(weight)
     other.mapping.iterations_per_keyframe = 4
     with pytest.raises(InputError, match="another configuration"):
         run_sequence(data, tmp_path / "cut", other, progress=False, resume=True)
@@ -69,7 +71,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     assert any((tmp_path / "cut" / "checkpoint.corr").glob("seg_*.npz"))
     shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
     with pytest.raises(InputError, match="checkpoint.corr"):
-        run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
     # a checkpoint of an older version is refused by name (one without a format number:
     # before 2026-11-27), and a damaged one names the array it lacks
     ckpt = tmp_path / "cut" / "checkpoint.npz"
@@ -78,10 +80,10 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     meta = json.loads(str(arrays["meta"]))
     np.savez(ckpt, **dict(arrays, meta=np.array(json.dumps({k: v for k, v in meta.items() if k != "format"}))))
     with pytest.raises(InputError, match="older version \\(format 1"):
-        run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
     np.savez(ckpt, **{k: v for k, v in arrays.items() if k != "exposure"})
     with pytest.raises(InputError, match="no array 'exposure'"):
-        run_sequence(data, tmp_path / "cut", small_config(), progress=False, resume=True)
+        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
 
 
 def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypatch):
