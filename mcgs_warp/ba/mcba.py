@@ -128,7 +128,7 @@ class MCBA:
         return [int(k) for k in keyframes]
 
     # ----------------------------------------------------------------------------------
-    def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None, keypoints=None) -> MCBAStats:
+    def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None, keypoints=None, factors=()) -> MCBAStats:
         """Run LM iterations over ``edges`` [E,>=4] with correspondences ``targets``
         [E,h,w,2] (reduced-grid pixels) and ``weights`` [E,h,w].
 
@@ -136,7 +136,10 @@ class MCBA:
         must stay inside it); ``fixed``: keyframes whose pose is held (default: the
         first of the window); ``keypoints``: a
         :class:`~mcgs_warp.ba.keypoint_factors.KeypointProblem` over the window's slots,
-        whose tracks are solved with it (their inverse depths are updated in place)."""
+        whose tracks are solved with it (their inverse depths are updated in place);
+        ``factors``: more pose factors over the window's slots with the same interface
+        (``cost``, ``reduced_terms``, ``candidate``, ``accept``; e.g.
+        :class:`~mcgs_warp.ba.depth_factors.DepthAlignmentFactors`)."""
         from .keypoint_factors import KeypointFactors, window_poses
 
         cfg = self.cfg
@@ -149,8 +152,9 @@ class MCBA:
         prior = self.prior_target(keyframes) if cfg.prior_weight > 0 else None
         win = _Window(self.buf, cfg, keyframes, edges, targets, weights, prior)
         kp = KeypointFactors(keypoints, self.buf.rig, self.buf.stride, cfg.huber_delta, cfg.min_disp) if keypoints is not None and len(keypoints) else None
+        extra = ([kp] if kp else []) + [f for f in factors if len(f)]
         lam = cfg.lm_lambda
-        current = win.cost(win.disp, win.poses) + (kp.cost(window_poses(win.poses.numpy())) if kp else 0.0)
+        current = win.cost(win.disp, win.poses) + sum(f.cost(window_poses(win.poses.numpy())) for f in extra)
         stats.cost.append(current)
         free = [s for s, k in enumerate(keyframes) if k not in fixed]
         free_idx = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in free]) if free else np.zeros(0, int)
@@ -162,9 +166,9 @@ class MCBA:
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0
             S, rhs = win.reduce(lam)  # Schur complement with the damped depth block
-            if kp:
-                S_kp, rhs_kp = kp.reduced_terms(window_poses(win.poses.numpy()), lam)
-                S, rhs = S + S_kp, rhs + rhs_kp
+            for f in extra:
+                S_f, rhs_f = f.reduced_terms(window_poses(win.poses.numpy()), lam)
+                S, rhs = S + S_f, rhs + rhs_f
             t2 = time.perf_counter()
             stats.seconds_reduce += t2 - t1
 
@@ -187,13 +191,13 @@ class MCBA:
                         break
                     continue
                 new_cost = win.cost(win.disp_c, win.poses_c)
-                if kp:
-                    kp.candidate(dxi)
-                    new_cost += kp.cost(window_poses(win.poses_c.numpy()), kp.disp_c)
+                for f in extra:
+                    f.candidate(dxi)
+                    new_cost += f.cost(window_poses(win.poses_c.numpy()), getattr(f, "disp_c", None))
                 if new_cost <= current:
                     win.accept()
-                    if kp:
-                        kp.accept()
+                    for f in extra:
+                        f.accept()
                     current = new_cost
                     stats.cost.append(current)
                     stats.accepted += 1

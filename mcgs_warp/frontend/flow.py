@@ -47,14 +47,16 @@ FLAT_STD = 0.005
 
 def textured(image: np.ndarray, uv: np.ndarray, radius: int = 3) -> np.ndarray:
     """bool [h,w]: whether the (2 radius + 1)^2 grey window of ``image`` [H,W,3] around each
-    integer pixel ``uv`` [h,w,2] has a std of at least :data:`FLAT_STD`."""
+    pixel ``uv`` [h,w,2] (rounded, clipped to the image) has a std of at least :data:`FLAT_STD`."""
     import cv2
 
     g = cv2.cvtColor(np.asarray(image, np.float32), cv2.COLOR_RGB2GRAY)
     k = (2 * radius + 1, 2 * radius + 1)
     m, m2 = cv2.boxFilter(g, -1, k), cv2.boxFilter(g * g, -1, k)
     std = np.sqrt(np.maximum(m2 - m * m, 0.0))
-    return std[uv[..., 1].astype(int), uv[..., 0].astype(int)] >= FLAT_STD
+    u = np.clip(np.rint(np.nan_to_num(uv[..., 0])), 0, g.shape[1] - 1).astype(int)
+    v = np.clip(np.rint(np.nan_to_num(uv[..., 1])), 0, g.shape[0] - 1).astype(int)
+    return std[v, u] >= FLAT_STD
 
 
 def to_reduced(uv: np.ndarray, stride: int) -> np.ndarray:
@@ -139,7 +141,7 @@ class DISFlow(FlowProvider):
         return checked(fwd, bwd, image_a.shape), (checked(bwd, fwd, image_b.shape) if both else None)
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
-        """Targets and weights of ``edges``; flat grid pixels (:func:`textured`) get weight 0."""
+        """Targets and weights of ``edges``; grid pixels flat at either end (:func:`textured`) get weight 0."""
         E = len(edges)
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
@@ -153,9 +155,10 @@ class DISFlow(FlowProvider):
             targets[e], weights[e] = grid_targets(buffer, ci, cj, *forward)
             if (j, cj, i, ci) in wanted:
                 reverse[(j, cj, i, ci)] = grid_targets(buffer, cj, ci, *back)
-        for e, (i, ci) in enumerate(edges[:, :2].tolist()):
+        for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):  # texture at both ends: a flat target matches anything
             uv = grid_pixels(buffer.rig.cameras[ci], buffer.stride)
-            weights[e, : uv.shape[0], : uv.shape[1]] *= textured(buffer.images[i][ci], uv)
+            h, w = uv.shape[:2]
+            weights[e, :h, :w] *= textured(buffer.images[i][ci], uv) & textured(buffer.images[j][cj], from_reduced(targets[e, :h, :w], buffer.stride))
         return targets, weights
 
 
@@ -458,7 +461,7 @@ class GuidedDIS(FlowProvider):
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
         target[:hr, :wr] = np.where(ok[..., None], to_reduced(t.astype(np.float64), s), 0.0)
-        weight[:hr, :wr] = conf[vi, ui] * ok * textured(buffer.images[i][ci], uv)
+        weight[:hr, :wr] = conf[vi, ui] * ok * textured(buffer.images[i][ci], uv) * textured(buffer.images[j][cj], np.where(ok[..., None], t, 0.0))
 
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
         """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel:

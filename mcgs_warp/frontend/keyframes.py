@@ -50,7 +50,7 @@ class KeyframeSelector:
         m = float(np.mean([np.linalg.norm(f, axis=-1).mean() for f in flows]))
         previous = self._previous if self._previous is not None and self._previous_key is last_keyframe_images else None
         self._previous, self._previous_key = flows, last_keyframe_images
-        return m > self.threshold, motion(flows, previous)
+        return m >= self.threshold, motion(flows, previous)  # a threshold of 0 makes every frame a keyframe
 
 
 def motion(flows, previous=None, q: float = 75.0) -> float:

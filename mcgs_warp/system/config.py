@@ -43,7 +43,7 @@ class TrackingConfig:
     max_width: int = 640  # px: images are resampled (intrinsics scaled) so the widest camera is at most this wide for tracking and mapping (0: native resolution)
     stride: int = 8  # px: inverse depth and flow live on every 8th pixel (the reduced grid)
     window: int = 8  # keyframes in the MCBA sliding window
-    keyframe_flow: float = THRESHOLD_RAD  # rad: new keyframe when the mean flow since the last, in view angle (px / focal length), exceeds this (0.055: 10 px at a 180 px focal length, 20 px for KITTI at 640 px wide)
+    keyframe_flow: float = THRESHOLD_RAD  # rad: new keyframe when the mean flow since the last, in view angle (px / focal length), reaches this (0: every frame; 0.055: 10 px at a 180 px focal length, 20 px for KITTI at 640 px wide)
     temporal_radius: int = 2  # each view links to up to 2x this many overlapping views of the window (nearest first); the last radius+1 keyframes' edges are re-matched between MCBA rounds
     cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8); never with exact sensor depth, which already fixes the depth they measure
     mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
@@ -54,6 +54,7 @@ class TrackingConfig:
     max_residual_ratio: float = 10.0  # ... and so is one whose final robust cost per unit of correspondence weight exceeds this times the run's median
     keypoints: bool = True  # anchor each new keyframe's pose by keypoints matched against recent keyframes (multi-camera PnP; false: the constant-velocity prediction alone) and relocalize failed keyframes by them
     keypoint_weight: float = 0.0  # confidence of one keypoint track observation in MCBA (a dense correspondence's is its DIS confidence, 0-1); 0: keypoints anchor and relocalize only (KITTI excerpt: SE(3) ATE 0.778 m at 0, 0.837 m at 1, 0.914 m at 4; docs/results.md)
+    depth_weight: float = 30.0  # px^2 m^2: weight of the sensor-depth alignment residual (exact sensor depth only: a view's depth moved into another against that view's depth, so textureless surfaces with good depth still track; 0: off)
     flow_rounds: int = 2  # MCBA (+ JDSA) rounds per keyframe; between them correspondences follow the new geometry
 
 

@@ -63,10 +63,11 @@ class KeyframeStep:
             edges, targets, weights = self.graph.arrays(keyframes)
             before = self.buf.get_poses()
             kp, roots = self._keypoint_problem(keyframes, before)
+            geometric = self._depth_factors(keyframes, edges)
             if self.jdsa_active:
                 stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges, keypoints=kp)[-1]
             else:
-                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes, keypoints=kp)
+                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes, keypoints=kp, factors=geometric)
             out.append((stats, float(np.nansum(weights))))
             after = self.buf.get_poses()
             if kp is not None:
@@ -74,6 +75,28 @@ class KeyframeStep:
             self.mapper.map.follow_keyframes(before, after)
         self._follow_depths(keyframes)
         return out
+
+    def _depth_factors(self, keyframes, edges) -> list:
+        """Sensor-depth alignment over the window's edges between keyframes (exact sensor
+        depth only, ``tracking.depth_weight`` > 0); kept for the health check."""
+        from ..ba.depth_factors import DepthAlignmentFactors
+
+        w = self.cfg.tracking.depth_weight
+        self._geometric = None
+        if not self.exact_depth or w <= 0:
+            return []
+        keyframes = list(keyframes)
+        slot = {k: s for s, k in enumerate(keyframes)}
+        pairs = np.array([(slot[i], ci, slot[j], cj) for i, ci, j, cj in np.asarray(edges)[:, :4].tolist() if i != j], int).reshape(-1, 4)
+        if not len(pairs):
+            return []
+        buf = self.buf
+        if getattr(self, "_grid", None) is None:
+            self._grid = (buf.rays.numpy().astype(np.float64), [c.warp_camera() for c in buf.reduced])
+        depth = buf.depth_prior.numpy()[keyframes]
+        f = DepthAlignmentFactors(pairs, depth, *self._grid, self._T_b_c, w, self.mcba.cfg.huber_delta)
+        self._geometric = (keyframes, f)
+        return [f]
 
     @property
     def _T_b_c(self) -> np.ndarray:
@@ -87,7 +110,8 @@ class KeyframeStep:
 
     def _confident_fractions(self, k: int) -> tuple[float, list]:
         """Fraction of keyframe ``k``'s grid pixels with a confident (weight > 0.5)
-        correspondence to another keyframe: over all cameras, and per camera [C]."""
+        correspondence to another keyframe, or whose sensor depth the other keyframes' depth
+        agrees with (:meth:`_depth_factors`): over all cameras, and per camera [C]."""
         C, s = len(self.seq.rig), self.buf.stride
         area = np.array([(c.height // s) * (c.width // s) for c in self.seq.rig.cameras], np.float64)
         rows = [n for n, e in enumerate(self.graph.edges) if e[0] == k and e[2] != k]
@@ -97,6 +121,14 @@ class KeyframeStep:
             _, w = self.graph.correspondences(edges)
             for e, wt in zip(edges, w):
                 linked[int(e[1])] |= wt > 0.5
+        geo = getattr(self, "_geometric", None)
+        if geo is not None and k in geo[0]:  # sensor depth that agrees counts as a confident match
+            keyframes, f = geo
+            poses = self.buf.get_poses()[keyframes]
+            ok = f.inliers(poses) & (f.si == keyframes.index(k))
+            for dy in range(f.step):
+                for dx in range(f.step):
+                    linked[f.ci[ok], np.minimum(f.ys[ok] + dy, self.buf.h - 1), np.minimum(f.xs[ok] + dx, self.buf.w - 1)] = True
         per = linked.sum(axis=(1, 2)) / np.maximum(area, 1)
         return float(linked.sum()) / max(area.sum(), 1), [round(float(f), 4) for f in per]
 

@@ -104,3 +104,40 @@ def test_a_lost_span_is_said_once_and_left_out_of_the_map(tmp_path, capfd):
     assert "frames 5-7 (3 keyframes)" in lost[0] and "tracking resumed at frame 8" in lost[0]
     mapped = np.load(tmp_path / "run" / "checkpoint.npz")["mapped_keys"].tolist()
     assert not {5, 6, 7} & set(mapped) and {0, 8, 10} <= set(mapped)
+
+
+@pytest.mark.parametrize("depth_weight", [30.0, 0.0], ids=["depth-residual", "without"])
+def test_a_textureless_stretch_with_exact_depth_tracks(tmp_path, capfd, depth_weight):
+    """Frames 4-7 of a drive lose all texture (flat grey images) while the sensor depth stays
+    exact, and every frame is a keyframe: no correspondence and no keypoint sees them. The
+    sensor-depth residual tracks them (every keyframe within 2 cm and 0.5 degrees of the
+    truth, no failure); without it they are failures and then lost."""
+    import cv2
+
+    from mcgs_warp.data.sequence import frame_name
+    from mcgs_warp.data.trajectory import read_tum
+    from mcgs_warp.geometry import invert, pose_distance
+
+    n, flat = 10, range(4, 8)
+    generate(tmp_path / "data", n_cameras=2, seed=3, progress=False, depth="exact", trajectory=rig_trajectory(n))
+    for k in flat:
+        for c in range(2):
+            path = tmp_path / "data" / f"cam{c}" / "rgb" / frame_name(k)
+            img = cv2.imread(str(path))
+            cv2.imwrite(str(path), np.full_like(img, 128))
+    cfg = config()
+    cfg.tracking.keyframe_flow = 0.0
+    cfg.tracking.mcba_iterations = 4
+    cfg.tracking.depth_weight = depth_weight
+    metrics = run_sequence(tmp_path / "data", tmp_path / "run", cfg, progress=False)
+    kfs = read_tum(tmp_path / "run" / "keyframes.txt")
+    gt = read_tum(tmp_path / "data" / "groundtruth.txt")
+    frames = [int(np.argmin(np.abs(gt.timestamps - t))) for t in kfs.timestamps]
+    assert set(flat) <= set(frames), frames  # flat frames are keyframes too (a flow threshold of 0 is met by any flow)
+    errs = [pose_distance(invert(kfs.poses[0]) @ T, invert(gt.poses[frames[0]]) @ gt.poses[f]) for T, f in zip(kfs.poses, frames)]
+    worst = max(e[0] for e in errs), np.degrees(max(e[1] for e in errs))
+    if depth_weight > 0:
+        assert metrics["tracking_failures"] == 0 and not metrics["tracking_lost_frames"], capfd.readouterr().err
+        assert worst[0] < 0.02 and worst[1] < 0.5, worst
+    else:
+        assert metrics["tracking_failures"] >= 3 and metrics["tracking_lost_frames"]

@@ -1,0 +1,153 @@
+"""Sensor-depth alignment factors in MCBA: a textureless wall with good depth still tracks.
+
+With exact sensor depth every grid pixel of a source view (i, ci) is a known 3D point. Moved
+into a target view (j, cj) by the current poses it predicts an inverse depth there; the
+residual is its difference from the target's own sensor inverse depth at the pixel it lands
+on (bilinear on the reduced grid; pixels next to a depth edge are skipped):
+
+    r = 1 / depth_cj(T_cj_ci X_ci) - rho_j(Pi_cj(T_cj_ci X_ci))
+
+a 2.5D ICP residual (as DVO-SLAM's and KinectFusion's depth terms), weighted by
+``weight`` (the unit of MCBA's inverse-depth prior, px^2 m^2: small beside the photometric
+correspondences where there is texture, alone where there is none), robust (Huber, the same
+threshold), on the poses only (exact depth is not re-estimated). Its Jacobian includes the
+target depth's gradient through the projection. NumPy, float64, added to MCBA's reduced
+camera system like :mod:`.keypoint_factors`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..kernels import reference
+from .keypoint_factors import _skew
+
+EDGE_REL = 0.1  # a target pixel whose 2x2 grid neighbours differ by more than this share in inverse depth straddles a depth edge
+
+
+class DepthAlignmentFactors:
+    """Pose-only factors between views with sensor depth (module docstring).
+
+    ``edges`` [E,>=4] ``(slot i, camera ci, slot j, camera cj)`` (i != j); ``depth`` [n,C,h,w]
+    sensor depth on the reduced grid of the window's slots (m, 0 = none); ``rays`` [C,h,w,3]
+    the grid's unit-depth rays; ``cameras`` the reduced-grid cameras (Warp structs);
+    ``T_b_c`` [C,4,4]; ``step``: use every step-th grid pixel."""
+
+    def __init__(self, edges, depth, rays, cameras, T_b_c, weight: float, huber_delta: float, step: int = 2):
+        self.cams, self.T_b_c, self.w, self.delta = cameras, T_b_c, weight, huber_delta
+        self.depth = depth
+        with np.errstate(divide="ignore"):
+            self.rho = np.where(depth > 0, 1.0 / np.maximum(depth, 1e-12), 0.0)
+        src = []
+        for i, ci, j, cj in np.asarray(edges)[:, :4].tolist():
+            d = depth[i, ci, ::step, ::step]
+            ys, xs = np.nonzero(d > 0)
+            ys, xs = ys * step, xs * step
+            if len(ys):
+                src.append((np.full(len(ys), i), np.full(len(ys), ci), np.full(len(ys), j), np.full(len(ys), cj), ys, xs, rays[ci, ys, xs] * depth[i, ci, ys, xs][:, None]))
+        self.step = step
+        if src:
+            self.si, self.ci, self.sj, self.cj, self.ys, self.xs = (np.concatenate([s[k] for s in src]).astype(int) for k in range(6))
+            self.X_ci = np.concatenate([s[6] for s in src]).astype(np.float64)
+        else:
+            self.si = self.ci = self.sj = self.cj = self.ys = self.xs = np.zeros(0, int)
+            self.X_ci = np.zeros((0, 3))
+
+    def __len__(self) -> int:
+        return len(self.si)
+
+    def _points(self, poses):
+        Tbc_i, Twb_i, Twb_j, Tbc_j = self.T_b_c[self.ci], poses[self.si], poses[self.sj], self.T_b_c[self.cj]
+        X_bi = np.einsum("nij,nj->ni", Tbc_i[:, :3, :3], self.X_ci) + Tbc_i[:, :3, 3]
+        X_w = np.einsum("nij,nj->ni", Twb_i[:, :3, :3], X_bi) + Twb_i[:, :3, 3]
+        X_bj = np.einsum("nji,nj->ni", Twb_j[:, :3, :3], X_w - Twb_j[:, :3, 3])
+        X_cj = np.einsum("nji,nj->ni", Tbc_j[:, :3, :3], X_bj - Tbc_j[:, :3, 3])
+        return X_bi, X_bj, X_cj
+
+    def _lookup(self, X_cj, jac: bool):
+        """Predicted inverse depth, target inverse depth (bilinear), its gradient [n,2] and the
+        projection Jacobian [n,2,3] on the reduced grid; valid [n]."""
+        n = len(X_cj)
+        uv, J = np.zeros((n, 2)), (np.zeros((n, 2, 3)) if jac else None)
+        pred = np.zeros(n)
+        dpred = np.zeros((n, 3))
+        valid = np.zeros(n, bool)
+        for c, cam in enumerate(self.cams):
+            m = self.cj == c
+            if not m.any():
+                continue
+            with np.errstate(all="ignore"):
+                ok = reference.in_domain(cam, X_cj[m])
+                X = np.where(ok[:, None], X_cj[m], [0.0, 0.0, 1.0])
+                uv[m] = reference.project(cam, X)
+                if jac:
+                    J[m] = reference.jacobian(cam, X)
+            if cam.model == 2:  # equirectangular: depth is the ray length
+                r = np.linalg.norm(X, axis=1)
+                pred[m], dpred[m] = 1.0 / r, -X / r[:, None] ** 3
+            else:
+                pred[m] = 1.0 / X[:, 2]
+                dpred[m] = np.stack([np.zeros(len(X)), np.zeros(len(X)), -1.0 / X[:, 2] ** 2], 1)
+            valid[m] = ok
+        h, w = self.rho.shape[2:]
+        x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        inside = valid & (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1) & np.isfinite(uv).all(1)
+        x0, y0 = np.where(inside, x0, 0), np.where(inside, y0, 0)
+        fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
+        R = self.rho[self.sj, self.cj]
+        r00, r01, r10, r11 = R[np.arange(n), y0, x0], R[np.arange(n), y0, x0 + 1], R[np.arange(n), y0 + 1, x0], R[np.arange(n), y0 + 1, x0 + 1]
+        corners = np.stack([r00, r01, r10, r11], 1)
+        smooth = (corners.min(1) > 0) & (corners.max(1) - corners.min(1) < EDGE_REL * corners.max(1))
+        target = (1 - fy) * ((1 - fx) * r00 + fx * r01) + fy * ((1 - fx) * r10 + fx * r11)
+        grad = np.stack([(1 - fy) * (r01 - r00) + fy * (r11 - r10), (1 - fx) * (r10 - r00) + fx * (r11 - r01)], 1)
+        return pred, target, dpred, grad, J, inside & smooth
+
+    def residuals(self, poses):
+        X_cj = self._points(poses)[2]
+        pred, target, _, _, _, valid = self._lookup(X_cj, jac=False)
+        return pred - target, valid
+
+    def _robust(self, r, valid):
+        s = np.sqrt(self.w) * np.abs(r)
+        cost = np.where(s <= self.delta, 0.5 * s * s, self.delta * (s - 0.5 * self.delta))
+        W = self.w * np.where(s <= self.delta, 1.0, self.delta / np.maximum(s, 1e-300))
+        return np.where(valid, cost, 0.0), np.where(valid, W, 0.0)
+
+    def cost(self, poses, _disp=None) -> float:
+        r, valid = self.residuals(poses)
+        return float(self._robust(r, valid)[0].sum())
+
+    def inliers(self, poses) -> np.ndarray:
+        """[n] bool: residuals inside the Huber threshold (points the depth agrees on)."""
+        r, valid = self.residuals(poses)
+        return valid & (np.sqrt(self.w) * np.abs(r) <= self.delta)
+
+    def reduced_terms(self, poses, lam: float):
+        """``S`` [6n,6n] and ``rhs`` [6n] of these pose-only factors (MCBA's sign convention)."""
+        n = len(poses)
+        X_bi, X_bj, X_cj = self._points(poses)
+        pred, target, dpred, grad, Jp, valid = self._lookup(X_cj, jac=True)
+        r = pred - target
+        _, W = self._robust(r, valid)
+        g = dpred - np.einsum("nk,nkj->nj", grad, Jp)  # d r / d X_cj
+        R_cj_b = np.transpose(self.T_b_c[self.cj][:, :3, :3], (0, 2, 1))
+        R_bj_w = np.transpose(poses[self.sj][:, :3, :3], (0, 2, 1))
+        R_w_bi = poses[self.si][:, :3, :3]
+        a_j = np.einsum("nj,nji->ni", g, R_cj_b)  # d r / d X_bj
+        a_w = np.einsum("nj,nji->ni", a_j, R_bj_w)  # d r / d X_w
+        eye = np.broadcast_to(np.eye(3), (len(r), 3, 3))
+        J_i = np.einsum("nj,nji->ni", np.einsum("nj,nji->ni", a_w, R_w_bi), np.concatenate([eye, -_skew(X_bi)], axis=2))
+        J_j = np.einsum("nj,nji->ni", a_j, np.concatenate([-eye, _skew(X_bj)], axis=2))
+        A = np.concatenate([J_i, J_j], axis=1)  # [n,12]
+        idx = np.concatenate([6 * self.si[:, None] + np.arange(6), 6 * self.sj[:, None] + np.arange(6)], axis=1)
+        S = np.zeros((6 * n, 6 * n))
+        rhs = np.zeros(6 * n)
+        np.add.at(S, (idx[:, :, None], idx[:, None, :]), W[:, None, None] * A[:, :, None] * A[:, None, :])
+        np.add.at(rhs, idx, -(W * r)[:, None] * A)
+        return S, rhs
+
+    def candidate(self, dxi) -> None:  # no variables of its own
+        pass
+
+    def accept(self) -> None:
+        pass
