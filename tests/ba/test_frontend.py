@@ -48,7 +48,7 @@ def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
     """An edge and its reverse come from the same two DIS runs and equal what each edge
     alone gives (flow(a, b) and flow(b, a), each with its own forward-backward check)."""
     from mcgs_warp.buffer import grid_pixels
-    from mcgs_warp.frontend.flow import grid_targets, textured
+    from mcgs_warp.frontend.flow import from_reduced, grid_targets, textured
 
     P = Problem(synthetic_seq, [0, 1], cross_view=False, radius=1)
     temporal = P.edges[P.edges[:, 4] == TEMPORAL]
@@ -63,7 +63,8 @@ def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
     for e, (i, ci, j, cj, _kind) in enumerate(pairs):
         alone = grid_targets(P.buf, ci, cj, *DISFlow().flow(P.buf.images[i][ci], P.buf.images[j][cj]))
         uv = grid_pixels(P.buf.rig.cameras[ci], P.buf.stride)
-        alone[1][: uv.shape[0], : uv.shape[1]] *= textured(P.buf.images[i][ci], uv)
+        gh, gw = uv.shape[:2]
+        alone[1][:gh, :gw] *= textured(P.buf.images[i][ci], uv) & textured(P.buf.images[j][cj], from_reduced(alone[0][:gh, :gw], P.buf.stride))
         np.testing.assert_allclose(t[e], alone[0], atol=1e-5)
         np.testing.assert_allclose(w[e], alone[1], atol=1e-5)
 
