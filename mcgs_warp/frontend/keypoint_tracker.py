@@ -94,7 +94,7 @@ class KeypointTracker:
                     b.append(v.bearings[m[:, 0]])
                     X.append(pts[d][idx[m[:, 1]]])
                     who.append(np.stack([np.full(len(m), k), np.full(len(m), d), idx[m[:, 1]], m[:, 0]], 1))
-            if b:
+            if sum(len(x) for x in b):  # a camera without matches has no set (PnP's sets and these pairs stay aligned)
                 obs.append(RigObservations(c, np.concatenate(b), np.concatenate(X)))
                 pairs.append(np.concatenate(who))
         return obs, pairs

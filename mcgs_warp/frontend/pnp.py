@@ -112,9 +112,9 @@ class RigPnP:
         return int(sum(int(m.sum()) for m in inl)), inl
 
     def solve(self, obs: list[RigObservations], guess: np.ndarray | None = None, min_inliers: int = 12) -> PnPResult | None:
-        """The rig pose from ``obs`` (one entry per camera with matches), or None when no
-        hypothesis gathers ``min_inliers`` inliers."""
-        obs = [o for o in obs if len(o.bearings)]
+        """The rig pose from ``obs`` (sets of matches, one per camera; a set may be empty),
+        or None when no hypothesis gathers ``min_inliers`` inliers. The result's ``inliers``
+        follow ``obs`` set by set."""
         total = sum(len(o.bearings) for o in obs)
         if total < max(min_inliers, 3):
             return None

@@ -62,6 +62,17 @@ def test_rig_pnp_recovers_a_known_pose(guess):
         assert m[bad].mean() < 0.1
 
 
+def test_rig_pnp_inliers_follow_the_sets_given_even_empty_ones():
+    rng = np.random.default_rng(6)
+    rig = mixed_rig()
+    T_true = se3_exp(np.array([0.5, 0.2, 0.0, 0.0, 0.0, 0.3]))
+    obs, _ = observations(rig, T_true, 30, 0.0, 0.0, rng)
+    obs[1] = RigObservations(1, np.zeros((0, 3)), np.zeros((0, 3)))
+    res = RigPnP(rig).solve(obs)
+    assert res is not None and len(res.inliers) == len(obs)
+    assert [len(m) for m in res.inliers] == [len(o.bearings) for o in obs] and res.inliers[0].all()
+
+
 def test_rig_pnp_refuses_noise():
     rng = np.random.default_rng(5)
     rig = mixed_rig()
