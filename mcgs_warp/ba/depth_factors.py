@@ -117,10 +117,27 @@ class DepthAlignmentFactors:
         r, valid = self.residuals(poses)
         return float(self._robust(r, valid)[0].sum())
 
-    def inliers(self, poses) -> np.ndarray:
-        """[n] bool: residuals inside the Huber threshold (points the depth agrees on)."""
+    def agreement(self, poses, slot: int, rel: float = 0.02, min_share: float = 0.5, min_conditioning: float = 1e-4) -> np.ndarray:
+        """[n] bool: the samples of view slot ``slot`` whose moved depth agrees with the
+        target's within ``rel`` (relative inverse depth), or none at all when they do not
+        place the slot: fewer than ``min_share`` of its valid samples agree (a wrong pose
+        where only the floor agrees), or their information leaves a direction free (one
+        plane fixes only three of the six; eigenvalues of the pose block below
+        ``min_conditioning`` of the largest, translation in units of the mean depth)."""
         r, valid = self.residuals(poses)
-        return valid & (np.sqrt(self.w) * np.abs(r) <= self.delta)
+        X_cj = self._points(poses)[2]
+        pred = self._lookup(X_cj, jac=False)[0]
+        mine = valid & (self.si == slot)
+        ok = mine & (np.abs(r) <= rel * np.abs(pred))
+        if not mine.any() or ok.sum() < min_share * mine.sum():
+            return np.zeros(len(r), bool)
+        S = self.reduced_terms(poses, 0.0)[0][6 * slot : 6 * slot + 6, 6 * slot : 6 * slot + 6]
+        depth = float(np.median(np.linalg.norm(self.X_ci[mine], axis=1)))
+        D = np.diag([depth] * 3 + [1.0] * 3)  # translation per metre of depth ~ rotation per radian
+        ev = np.linalg.eigvalsh(D @ S @ D)
+        if ev[-1] <= 0 or ev[0] < min_conditioning * ev[-1]:
+            return np.zeros(len(r), bool)
+        return ok
 
     def reduced_terms(self, poses, lam: float):
         """``S`` [6n,6n] and ``rhs`` [6n] of these pose-only factors (MCBA's sign convention)."""

@@ -122,10 +122,9 @@ class KeyframeStep:
             for e, wt in zip(edges, w):
                 linked[int(e[1])] |= wt > 0.5
         geo = getattr(self, "_geometric", None)
-        if geo is not None and k in geo[0]:  # sensor depth that agrees counts as a confident match
+        if geo is not None and k in geo[0]:  # sensor depth that agrees (and places the keyframe) counts as a confident match
             keyframes, f = geo
-            poses = self.buf.get_poses()[keyframes]
-            ok = f.inliers(poses) & (f.si == keyframes.index(k))
+            ok = f.agreement(self.buf.get_poses()[keyframes], keyframes.index(k))
             for dy in range(f.step):
                 for dx in range(f.step):
                     linked[f.ci[ok], np.minimum(f.ys[ok] + dy, self.buf.h - 1), np.minimum(f.xs[ok] + dx, self.buf.w - 1)] = True
