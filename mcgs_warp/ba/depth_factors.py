@@ -94,8 +94,8 @@ class DepthAlignmentFactors:
         inside = valid & (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1) & np.isfinite(uv).all(1)
         x0, y0 = np.where(inside, x0, 0), np.where(inside, y0, 0)
         fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
-        R = self.rho[self.sj, self.cj]
-        r00, r01, r10, r11 = R[np.arange(n), y0, x0], R[np.arange(n), y0, x0 + 1], R[np.arange(n), y0 + 1, x0], R[np.arange(n), y0 + 1, x0 + 1]
+        R, sj, cj = self.rho, self.sj, self.cj  # corners indexed directly: no [n,h,w] copy
+        r00, r01, r10, r11 = R[sj, cj, y0, x0], R[sj, cj, y0, x0 + 1], R[sj, cj, y0 + 1, x0], R[sj, cj, y0 + 1, x0 + 1]
         corners = np.stack([r00, r01, r10, r11], 1)
         smooth = (corners.min(1) > 0) & (corners.max(1) - corners.min(1) < EDGE_REL * corners.max(1))
         target = (1 - fy) * ((1 - fx) * r00 + fx * r01) + fy * ((1 - fx) * r10 + fx * r11)

@@ -77,13 +77,15 @@ class KeypointTracker:
         """2D-3D matches of ``views`` (a new frame) against ``keyframes`` (their rig poses
         ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame, and per
         set the matched keypoints ``(keyframe, camera, index there, index here)`` [M,4]."""
-        obs, pairs = [], []
+        obs, pairs, pts_of = [], [], {}  # pts_of: keyframe -> its world points per camera (once per call)
         for c, v in enumerate(views):
             b, X, who = [], [], []
             for k in keyframes:
                 if k not in self.views:
                     continue
-                pts = self.points_w(k, poses[k], depth_at, solved)
+                if k not in pts_of:
+                    pts_of[k] = self.points_w(k, poses[k], depth_at, solved)
+                pts = pts_of[k]
                 for d in self.partners[c]:
                     kv = self.views[k][d]
                     ok = np.isfinite(pts[d][:, 0])

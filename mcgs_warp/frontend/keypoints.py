@@ -140,8 +140,10 @@ class KeypointDetector:
             rays = self._unproject(self._cams[b], p1r[good])
             bb = bb.copy()
             bb[good] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-            vb = views[b]  # the refined position is the keypoint's (it is where a's patch is)
-            vb.uv[ib[good]], vb.rays[ib[good]], vb.bearings[ib[good]] = p1r[good], rays, bb[good]
+            vb = views[b]  # the refined position is the keypoint's (it is where a's patch is) unless its point is already on its old ray (sensor depth)
+            move = ~vb.has_depth[ib[good]]
+            idx = ib[good][move]
+            vb.uv[idx], vb.rays[idx], vb.bearings[idx] = p1r[good][move], rays[move], bb[good][move]
         return bb
 
     def detect(self, images, depths=None) -> list[ViewKeypoints]:

@@ -151,8 +151,10 @@ class RigPnP:
         return PnPResult(T, inl, n, total, from_guess)
 
     def refine(self, T_w_b: np.ndarray, obs: list[RigObservations], inliers: list, iterations: int = 10) -> np.ndarray:
-        """Gauss-Newton with Huber weights (threshold ``inlier_rad``) on the bearing residuals
-        of ``inliers``; increments right-multiplied in the body frame (DESIGN.md)."""
+        """Levenberg-Marquardt (damped Gauss-Newton, a step kept only if the cost falls) with
+        Huber weights on the bearing residuals of ``inliers`` (unit-vector differences, about the
+        angle at these sizes; threshold ``inlier_rad``); increments right-multiplied in the body
+        frame (DESIGN.md)."""
         sets = [(o.camera, o.bearings[m], o.points_w[m]) for o, m in zip(obs, inliers) if m.any()]
         if sum(len(b) for _, b, _ in sets) < 6:
             return T_w_b

@@ -187,7 +187,7 @@ class KeyframeStep:
         if self.keypoints is not None:
             views = self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
             if len(buf):
-                recent = list(range(max(0, len(buf) - self.keypoints.cfg.keyframes), len(buf)))
+                recent = [j for j in range(len(buf)) if j not in self.lost][-self.keypoints.cfg.keyframes :]  # a lost keyframe's pose is only a prediction
                 self._anchor = self.keypoints.localize(views, recent, poses, self._keypoint_depth, guess=T_init, solved=self._solved_points)
                 if self._anchor is not None:
                     T_init = self._anchor.T_w_b
@@ -277,7 +277,7 @@ class KeyframeStep:
         frame = buf.frame_index[k]
         start, how = T_init, "the keypoint pose" if self._anchor is not None else "the constant-velocity prediction"
         if self.keypoints is not None and k in self.keypoints.views:
-            others = [j for j in range(len(buf)) if j != k]
+            others = [j for j in range(len(buf)) if j != k and j not in self.lost]
             reloc = self.keypoints.localize(self.keypoints.views[k], others, buf.get_poses(), self._keypoint_depth, solved=self._solved_points)
             if reloc is not None:
                 start, how = reloc.T_w_b, f"relocalized by keypoints ({reloc.n_inliers} inliers)"
