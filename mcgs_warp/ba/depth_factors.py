@@ -19,8 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..kernels import reference
-from .keypoint_factors import _skew
+from .keypoint_factors import _skew, project_by_camera
 
 EDGE_REL = 0.1  # a target pixel whose 2x2 grid neighbours differ by more than this share in inverse depth straddles a depth edge
 
@@ -68,27 +67,11 @@ class DepthAlignmentFactors:
         """Predicted inverse depth, target inverse depth (bilinear), its gradient [n,2] and the
         projection Jacobian [n,2,3] on the reduced grid; valid [n]."""
         n = len(X_cj)
-        uv, J = np.zeros((n, 2)), (np.zeros((n, 2, 3)) if jac else None)
-        pred = np.zeros(n)
-        dpred = np.zeros((n, 3))
-        valid = np.zeros(n, bool)
-        for c, cam in enumerate(self.cams):
-            m = self.cj == c
-            if not m.any():
-                continue
-            with np.errstate(all="ignore"):
-                ok = reference.in_domain(cam, X_cj[m])
-                X = np.where(ok[:, None], X_cj[m], [0.0, 0.0, 1.0])
-                uv[m] = reference.project(cam, X)
-                if jac:
-                    J[m] = reference.jacobian(cam, X)
-            if cam.model == 2:  # equirectangular: depth is the ray length
-                r = np.linalg.norm(X, axis=1)
-                pred[m], dpred[m] = 1.0 / r, -X / r[:, None] ** 3
-            else:
-                pred[m] = 1.0 / X[:, 2]
-                dpred[m] = np.stack([np.zeros(len(X)), np.zeros(len(X)), -1.0 / X[:, 2] ** 2], 1)
-            valid[m] = ok
+        uv, J, valid, X = project_by_camera(self.cams, self.cj, X_cj, jac)
+        equi = np.array([cam.model == 2 for cam in self.cams])[self.cj]  # equirectangular: depth is the ray length
+        r = np.linalg.norm(X, axis=1)
+        pred = np.where(equi, 1.0 / r, 1.0 / X[:, 2])
+        dpred = np.where(equi[:, None], -X / r[:, None] ** 3, np.stack([np.zeros(n), np.zeros(n), -1.0 / X[:, 2] ** 2], 1))
         h, w = self.rho.shape[2:]
         x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         inside = valid & (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1) & np.isfinite(uv).all(1)

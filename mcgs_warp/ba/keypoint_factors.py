@@ -34,6 +34,28 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
+def project_by_camera(cams, cam_of: np.ndarray, X: np.ndarray, jac: bool = False):
+    """Pixels [n,2] of camera-frame points ``X`` [n,3], each in its camera ``cams[cam_of[i]]``
+    (Warp camera structs, NumPy reference model), their Jacobians [n,2,3] (with ``jac``),
+    validity [n] (in the model's domain, finite) and the points used ([n,3]; invalid ones
+    replaced by +z so that nothing downstream divides by zero)."""
+    n = len(X)
+    uv, J = np.zeros((n, 2)), (np.zeros((n, 2, 3)) if jac else None)
+    valid, used = np.zeros(n, bool), np.tile([0.0, 0.0, 1.0], (n, 1))
+    for c, cam in enumerate(cams):
+        m = cam_of == c
+        if not m.any():
+            continue
+        with np.errstate(all="ignore"):
+            ok = reference.in_domain(cam, X[m])
+            used[m] = np.where(ok[:, None], X[m], [0.0, 0.0, 1.0])
+            uv[m] = reference.project(cam, used[m])
+            if jac:
+                J[m] = reference.jacobian(cam, used[m])
+        valid[m] = ok & np.all(np.isfinite(uv[m]), axis=1)
+    return uv, J, valid, used
+
+
 @dataclass
 class KeypointProblem:
     """The keypoint tracks of one MCBA window (slots index the window's keyframes)."""
@@ -81,20 +103,7 @@ class KeypointFactors:
 
     def _project(self, X_cj: np.ndarray, jac: bool = False):
         """Predicted full-resolution pixels [O,2] (and their Jacobians [O,2,3]), valid [O]."""
-        uv = np.zeros((len(X_cj), 2))
-        J = np.zeros((len(X_cj), 2, 3)) if jac else None
-        valid = np.zeros(len(X_cj), bool)
-        for c, cam in enumerate(self.cams):
-            m = self.p.obs_cam == c
-            if not m.any():
-                continue
-            with np.errstate(all="ignore"):
-                ok = reference.in_domain(cam, X_cj[m])
-                X = np.where(ok[:, None], X_cj[m], [0.0, 0.0, 1.0])
-                uv[m] = reference.project(cam, X)
-                if jac:
-                    J[m] = reference.jacobian(cam, X)
-            valid[m] = ok & np.all(np.isfinite(uv[m]), axis=1)
+        uv, J, valid, _ = project_by_camera(self.cams, self.p.obs_cam, X_cj, jac)
         return uv, J, valid
 
     def residuals(self, poses: np.ndarray, disp: np.ndarray):
