@@ -91,7 +91,7 @@ class KeyframeStep:
         if not len(pairs):
             return []
         buf = self.buf
-        if getattr(self, "_grid", None) is None:
+        if self._grid is None:
             self._grid = (buf.rays.numpy().astype(np.float64), [c.warp_camera() for c in buf.reduced])
         depth = buf.depth_prior.numpy()[keyframes]
         f = DepthAlignmentFactors(pairs, depth, *self._grid, self._T_b_c, w, self.mcba.cfg.huber_delta)
@@ -121,7 +121,7 @@ class KeyframeStep:
             _, w = self.graph.correspondences(edges)
             for e, wt in zip(edges, w):
                 linked[int(e[1])] |= wt > 0.5
-        geo = getattr(self, "_geometric", None)
+        geo = self._geometric
         if geo is not None and k in geo[0]:  # sensor depth that agrees (and places the keyframe) counts as a confident match
             keyframes, f = geo
             ok = f.agreement(self.buf.get_poses()[keyframes], keyframes.index(k))
@@ -148,7 +148,7 @@ class KeyframeStep:
             why = f"only {100 * frac:.1f} % of its pixels have a confident correspondence (tracking.min_confident {100 * th.min_confident:g} %)"
         elif usual is not None and np.isfinite(level) and level > th.max_residual_ratio * usual:
             why = f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
-        anchor = getattr(self, "_anchor", None)
+        anchor = self._anchor
         self.health.append({"keyframe": k, "frame": int(self.buf.frame_index[k]), "confident": round(frac, 4), "confident_per_camera": per_camera, "residual": float(level), "accepted": int(sum(st.accepted for st, _ in rounds)),
                             "keypoint_inliers": None if anchor is None else anchor.n_inliers, "keypoint_matches": None if anchor is None else anchor.n_matches, "failure": why})
         return why

@@ -113,6 +113,8 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
         self.frame_motion: dict = {}  # frame index -> image motion (rad) since the frame before it (the keyframe test's flows, :func:`motion`)
+        self._anchor = None  # the newest keyframe's keypoint pose (PnPResult) or None
+        self._geometric, self._grid = None, None  # the last solve's depth-alignment factors (window, factors); grid rays and cameras for them
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
         self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
