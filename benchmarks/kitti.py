@@ -1,14 +1,16 @@
 """A real drive: the KITTI stereo excerpt in ../shared/data, run as a user runs it.
 
     python benchmarks/kitti.py [--data ../shared/data/kitti_stereo_excerpt] [--out out/kitti]
-        [--max-width 640 ...] [--every 1 2 3] [--modes dense sparse keypoints]
+        [--max-width 640 ...] [--every 1 2 3] [--modes dense odometry sparse keypoints]
 
 For each processing width, frame step and mode: ``mcgs-slam run --data DATA --out
 OUT/w<width>_e<every>_<mode> --every N`` in a fresh process (so peak memory is per run), with the
 default configuration except ``tracking.max_width`` and the mode: ``dense`` (the default
 system), ``sparse`` (``--correspondences none`` with keypoint tracks in MCBA: the system's own
-sparse core on the same frames) or ``keypoints`` (the default plus keypoint tracks in MCBA,
-``tracking.keypoint_weight: 1``). ``--every 2 3`` are the frame-dropped variants (5 and 3.3 Hz).
+sparse core on the same frames), ``odometry`` (the keypoint odometry's motion between keyframes
+in MCBA, ``tracking.odometry_weight: 100``; by default it only starts keyframes and places the
+frames between them) or
+``keypoints`` (the default plus keypoint tracks in MCBA, ``tracking.keypoint_weight: 1``). ``--every 2 3`` are the frame-dropped variants (5 and 3.3 Hz).
 Prints per run: keyframes, SE(3)-aligned ATE (metres and % of path), Sim(3) scale and ATE,
 PSNR on keyframes and held-out frames, tracking failures, median confident fraction, seconds,
 peak resident memory. Issue 39's targets (SE(3) <= 0.8 % and Sim(3) <= 0.09 m at full rate,
@@ -33,13 +35,13 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("out/kitti"))
     ap.add_argument("--max-width", type=int, nargs="+", default=[640])
     ap.add_argument("--every", type=int, nargs="+", default=[1], help="frame steps: 1 (all frames), 2 and 3 (the frame-dropped variants)")
-    ap.add_argument("--modes", nargs="+", default=["dense"], choices=["dense", "sparse", "keypoints"])
+    ap.add_argument("--modes", nargs="+", default=["dense"], choices=["dense", "odometry", "sparse", "keypoints"])
     args = ap.parse_args()
     if not args.data.is_dir():
         print(f"no KITTI data at {args.data} (KITTI's licence keeps it out of the repository; see ../shared/data/README.md): nothing to measure")
         return 0
     rows = []
-    modes = {"dense": ("", []), "sparse": ("  keypoint_weight: 1.0\n", ["--correspondences", "none"]), "keypoints": ("  keypoint_weight: 1.0\n", [])}
+    modes = {"dense": ("", []), "sparse": ("  keypoint_weight: 1.0\n", ["--correspondences", "none"]), "keypoints": ("  keypoint_weight: 1.0\n", []), "odometry": ("  odometry_weight: 100.0\n", [])}
     for width in args.max_width:
         for every in args.every:
             for mode in args.modes:

@@ -17,6 +17,34 @@ DEPTH_HELP = ("depth written beside the images: exact (ray-cast), mono (monocula
               "field, noise, blurred edges; JDSA rescales it) or none; the exact depth always goes to gt/ for evaluation")
 
 
+def _add_sequence_arguments(p) -> None:
+    """The options ``run`` and ``map`` share: input, output, configuration, cameras, depth."""
+    p.add_argument("--data", required=True, help="sequence folder, ROS 1 .bag file or ROS 2 bag folder")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
+    p.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
+    p.add_argument("--kitti-cameras", choices=("grey", "colour"), default="grey",
+                     help="KITTI odometry folders: the grey pair image_0/image_1 (default) or the colour pair image_2/image_3")
+    p.add_argument("--depth", choices=("auto", "sensor", "stereo", "none"), default=None,
+                     help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
+                     "cameras), none, or auto (default: sensor when every frame has depth, "
+                     "else stereo when cameras overlap, else none)")
+    p.add_argument("--correspondences", choices=("estimated", "ground-truth", "none"), default=None,
+                     help="estimated (default), ground-truth: exact correspondences from the sequence's gt/ depth "
+                     "and groundtruth.txt (synthetic sequences), to measure the back end without the front end, or none: "
+                     "no dense correspondences, keypoint tracks alone (the sparse core, to measure what the dense edges add)")
+    p.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
+    p.add_argument("--every", type=int, default=1, metavar="N",
+                     help="keep every N-th frame (default 1: all): a high-rate camera at a lower rate; frame numbers in messages count the kept frames")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
+    calib = p.add_mutually_exclusive_group()
+    calib.add_argument("--rig", default=None, help="rig YAML (or Kalibr camchain): a ROS bag's calibration, each camera with its topic:; "
+                       "for a folder it replaces the folder's calibration (same cameras and resolutions)")
+    calib.add_argument("--from-kalibr", default=None, metavar="CAMCHAIN", help="Kalibr camchain.yaml / camchain-imucam.yaml as the rig (topics from its rostopic:)")
+    p.add_argument("--sync-tolerance", type=float, default=None, metavar="S",
+                     help="ROS bags: images of the cameras within this many seconds are one frame (default 0.005)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mcgs-slam",
@@ -66,31 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
 
     run = sub.add_parser("run", help="run SLAM on a sequence folder (ours, EuRoC, KITTI odometry or TUM RGB-D) or a ROS bag")
-    run.add_argument("--data", required=True, help="sequence folder, ROS 1 .bag file or ROS 2 bag folder")
-    run.add_argument("--out", required=True, help="output folder")
-    run.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
-    run.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
-    run.add_argument("--kitti-cameras", choices=("grey", "colour"), default="grey",
-                     help="KITTI odometry folders: the grey pair image_0/image_1 (default) or the colour pair image_2/image_3")
-    run.add_argument("--depth", choices=("auto", "sensor", "stereo", "none"), default=None,
-                     help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
-                     "cameras), none, or auto (default: sensor when every frame has depth, "
-                     "else stereo when cameras overlap, else none)")
-    run.add_argument("--correspondences", choices=("estimated", "ground-truth", "none"), default=None,
-                     help="estimated (default), ground-truth: exact correspondences from the sequence's gt/ depth "
-                     "and groundtruth.txt (synthetic sequences), to measure the back end without the front end, or none: "
-                     "no dense correspondences, keypoint tracks alone (the sparse core, to measure what the dense edges add)")
-    run.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
-    run.add_argument("--every", type=int, default=1, metavar="N",
-                     help="keep every N-th frame (default 1: all): a high-rate camera at a lower rate; frame numbers in messages count the kept frames")
-    run.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
-    calib = run.add_mutually_exclusive_group()
-    calib.add_argument("--rig", default=None, help="rig YAML (or Kalibr camchain): a ROS bag's calibration, each camera with its topic:; "
-                       "for a folder it replaces the folder's calibration (same cameras and resolutions)")
-    calib.add_argument("--from-kalibr", default=None, metavar="CAMCHAIN", help="Kalibr camchain.yaml / camchain-imucam.yaml as the rig (topics from its rostopic:)")
-    run.add_argument("--sync-tolerance", type=float, default=None, metavar="S",
-                     help="ROS bags: images of the cameras within this many seconds are one frame (default 0.005)")
+    _add_sequence_arguments(run)
     run.set_defaults(func=cmd_run)
+
+    mp = sub.add_parser("map", help="map a sequence from given rig poses (GNSS/INS, LiDAR, ground truth): depth, Gaussians and refinement, no tracking")
+    _add_sequence_arguments(mp)
+    mp.add_argument("--poses", required=True, help="TUM trajectory of the rig body (t tx ty tz qx qy qz qw), or 'groundtruth': the sequence's own")
+    mp.add_argument("--refine-poses", action="store_true", help="let the final refinement adjust the given poses (default: held)")
+    mp.set_defaults(func=cmd_run)
 
     rg = sub.add_parser("rig", help="convert a Kalibr calibration into a rig YAML",
                         description="Read a Kalibr camchain.yaml or camchain-imucam.yaml (pinhole-radtan, pinhole-equi) and write our rig YAML: "
@@ -192,8 +203,9 @@ def cmd_run(args) -> int:
 
         rig_from_kalibr(args.from_kalibr)  # refuses a file that is not a camchain
         rig = args.from_kalibr  # run_sequence reads it again, and names it in its errors
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance, every=args.every)
-    print(f"run finished; outputs in {args.out}")
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance, every=args.every,
+                           poses=getattr(args, "poses", None), refine_poses=getattr(args, "refine_poses", False))
+    print(f"{args.command} finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0
 
@@ -317,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mcgs-slam {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        hint = " (continue with --resume)" if args.command == "run" else ""
+        hint = " (continue with --resume)" if args.command in ("run", "map") else ""
         print(f"mcgs-slam {args.command}: interrupted{hint}", file=sys.stderr)
         return 130
 

@@ -161,7 +161,8 @@ class KeypointFactors:
         np.add.at(C, p.obs_track, W * np.einsum("ok,ok->o", J_d, J_d))
         np.add.at(b, p.obs_track, W * np.einsum("ok,ok->o", J_d, e))
         np.add.at(E, (p.obs_track[:, None], idx), W[:, None] * np.einsum("oki,ok->oi", A, J_d))
-        Q = np.where(C > 0, 1.0 / (C * (1.0 + lam) + lam * DEPTH_DAMPING), 0.0)
+        den = C * (1.0 + lam) + lam * DEPTH_DAMPING
+        Q = np.divide(1.0, den, out=np.zeros(T), where=C > 0)
         self._C, self._b, self._E, self._Q = C, b, E, Q
         return S - E.T @ (Q[:, None] * E), -g + E.T @ (Q * b)
 

@@ -155,15 +155,38 @@ class KeypointTracks:
             T = poses[window[prob.src_slot[t]]] @ T_b_c[prob.src_cam[t]]
             self.points[root] = T[:3, :3] @ (prob.rays[t] / d) + T[:3, 3]
 
-    def state_arrays(self) -> dict:
+    def retain(self, keyframes) -> None:
+        """Forget every node outside ``keyframes`` (their tracks and solved points stay with
+        the nodes kept), so that a tracker of every frame holds only its recent frames.
+        Node ids are renumbered in the order they were added; a track's root stays its
+        oldest node kept."""
+        keep = set(keyframes)
+        views = sorted((b, k, c) for (k, c), b in self.base.items() if k in keep)
+        new_of, nodes, base, count = {}, [], {}, {}
+        for b, k, c in views:
+            base[(k, c)], count[(k, c)] = len(nodes), self.count[(k, c)]
+            for i in range(self.count[(k, c)]):
+                new_of[b + i] = len(nodes)
+                nodes.append((k, c, i))
+        parent, points, root_of = list(range(len(nodes))), {}, {}
+        for old, new in new_of.items():  # ascending: the first node met of a track is its new root
+            r = self._find(old)
+            if r not in root_of:
+                root_of[r] = new
+                if r in self.points:
+                    points[new] = self.points[r]
+            parent[new] = root_of[r]
+        self.base, self.count, self.nodes, self.parent, self.points = base, count, nodes, parent, points
+
+    def state_arrays(self, prefix: str = "tracks.") -> dict:
         """The tracks as arrays for a checkpoint (nodes come back from the keyframes' keypoints)."""
         roots = np.array(sorted(self.points), np.int64)
-        return {"tracks.parent": np.array(self.parent, np.int64), "tracks.roots": roots, "tracks.points": np.array([self.points[r] for r in roots], np.float64).reshape(-1, 3)}
+        return {prefix + "parent": np.array(self.parent, np.int64), prefix + "roots": roots, prefix + "points": np.array([self.points[r] for r in roots], np.float64).reshape(-1, 3)}
 
-    def load_state_arrays(self, a: dict) -> None:
+    def load_state_arrays(self, a: dict, prefix: str = "tracks.") -> None:
         """Restore :meth:`state_arrays` once :meth:`add_views` has made the same nodes again."""
-        parent = a["tracks.parent"]
+        parent = a[prefix + "parent"]
         if len(parent) != len(self.parent):
             raise ValueError(f"checkpoint tracks have {len(parent)} keypoints, the keyframes {len(self.parent)}")
         self.parent = [int(v) for v in parent]
-        self.points = {int(r): p for r, p in zip(a["tracks.roots"], a["tracks.points"])}
+        self.points = {int(r): p for r, p in zip(a[prefix + "roots"], a[prefix + "points"])}

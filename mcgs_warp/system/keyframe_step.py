@@ -63,11 +63,11 @@ class KeyframeStep:
             edges, targets, weights = self.graph.arrays(keyframes)
             before = self.buf.get_poses()
             kp, roots = self._keypoint_problem(keyframes, before)
-            geometric = self._depth_factors(keyframes, edges)
+            geometric = self._depth_factors(keyframes, edges) + self._odometry_factors(keyframes)
             if self.jdsa_active:
-                stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges, keypoints=kp)[-1]
+                stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges, keypoints=kp, factors=geometric, fixed=self.held(keyframes))[-1]
             else:
-                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes, keypoints=kp, factors=geometric)
+                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes, keypoints=kp, factors=geometric, fixed=self.held(keyframes))
             out.append((stats, float(np.nansum(weights))))
             after = self.buf.get_poses()
             if kp is not None:
@@ -97,6 +97,33 @@ class KeyframeStep:
         f = DepthAlignmentFactors(pairs, depth, *self._grid, self._T_b_c, w, self.mcba.cfg.huber_delta)
         self._geometric = (keyframes, f)
         return [f]
+
+    def _odometry_factors(self, keyframes) -> list:
+        """The keypoint odometry's motion between consecutive keyframes of ``keyframes``
+        where it placed every frame between them, weighted by its information times
+        ``tracking.odometry_weight`` (:class:`~mcgs_warp.ba.pose_factors.RelativePoseFactors`)."""
+        from ..ba.pose_factors import RelativePoseFactors
+
+        w, odo = self.cfg.tracking.odometry_weight, self.odometry
+        if odo is None or w <= 0:
+            return []
+        keyframes = list(keyframes)
+        pairs, motions, info = [], [], []
+        for s in range(1, len(keyframes)):
+            fa, fb = int(self.buf.frame_index[keyframes[s - 1]]), int(self.buf.frame_index[keyframes[s]])
+            if not odo.span_tracked(fa, fb):
+                continue
+            cov = odo.relative_covariance(fa, fb)
+            try:
+                lam = np.linalg.inv(cov)
+            except np.linalg.LinAlgError:
+                continue
+            if not np.all(np.isfinite(lam)):
+                continue
+            pairs.append((s - 1, s))
+            motions.append(odo.relative(fa, fb))
+            info.append(w * 0.5 * (lam + lam.T))
+        return [RelativePoseFactors(pairs, motions, info)] if pairs else []
 
     @property
     def _T_b_c(self) -> np.ndarray:
@@ -183,9 +210,15 @@ class KeyframeStep:
             T_init = poses[-1]
         else:
             T_init = poses[-1] @ np.linalg.inv(poses[-2]) @ poses[-1]  # constant velocity
+        odo = self.odometry
+        if len(buf) and odo is not None and odo.span_tracked(int(buf.frame_index[-1]), frame.index):
+            T_init = poses[-1] @ odo.relative(int(buf.frame_index[-1]), frame.index)  # the keypoint odometry's motion since the last keyframe
+        given = self.given_pose(frame.index)
+        if given is not None:
+            T_init = given
         views, self._anchor = None, None
         if self.keypoints is not None:
-            views = self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
+            views = odo.views[frame.index] if odo is not None and frame.index in odo.views else self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
             if len(buf):
                 recent = [j for j in range(len(buf)) if j not in self.lost][-self.keypoints.cfg.keyframes :]  # a lost keyframe's pose is only a prediction
                 self._anchor = self.keypoints.localize(views, recent, poses, self._keypoint_depth, guess=T_init, solved=self._solved_points)
@@ -270,12 +303,17 @@ class KeyframeStep:
         ``disp0``; drop its correspondences, match them again from that start (guided by the
         older keyframes' solved depth, plain DIS where the start cannot guide) and solve
         again. If that fails too, ``k`` keeps the start. Returns whether ``k`` is tracked:
-        solved, or at least placed by its keypoints (not by constant velocity alone)."""
+        placed by keypoints (relocalized, anchored, or every frame since the last keyframe
+        placed by the keypoint odometry) and solved or at least kept there. Re-matching around
+        the constant-velocity prediction alone places nothing: guided matching on images
+        that match nothing (sensor noise) finds a consistent flow around any prediction."""
         from ..data.sequence import warn
 
         buf = self.buf
         frame = buf.frame_index[k]
-        start, how = T_init, "the keypoint pose" if self._anchor is not None else "the constant-velocity prediction"
+        odo = self.odometry
+        by_odometry = k > 0 and odo is not None and odo.span_tracked(int(buf.frame_index[k - 1]), int(frame))
+        start, how = T_init, "the keypoint pose" if self._anchor is not None else "the keypoint odometry's pose" if by_odometry else "the constant-velocity prediction"
         if self.keypoints is not None and k in self.keypoints.views:
             others = [j for j in range(len(buf)) if j != k and j not in self.lost]
             reloc = self.keypoints.localize(self.keypoints.views[k], others, buf.get_poses(), self._keypoint_depth, solved=self._solved_points)
@@ -291,12 +329,16 @@ class KeyframeStep:
         self.graph.add(own)
         self.graph.compute(self.guided_or_raw, self.graph.missing())
         second = self._health(k, self._solve(window))
-        if second is None:
+        placed = self._anchor is not None or by_odometry
+        if second is None and placed:
             warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); recovered from {how}")
             return True
+        if second is None:
+            warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); re-matched around {how}, which no keypoint confirms")
+            return False
         buf.set_poses(start[None], start=k)
         warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}; again after re-matching: {second}); keyframe {k} keeps {how}")
-        return self._anchor is not None
+        return placed
 
     def _link_newest(self, k: int) -> None:
         """A new keyframe whose views overlap no one else's by the graph's measure (a fast

@@ -63,16 +63,16 @@ def groundtruth_in_map(est: Trajectory, gt: Trajectory, with_scale: bool) -> Tra
 
 def keyframe_views(slam):
     """Render every keyframe's views at their final poses, exposure applied:
-    yields (k, c, rendered colour, rendered depth, input image, frame index)."""
+    yields (k, c, rendered colour, rendered depth, rendered alpha, input image, frame index)."""
     m, buf = slam.mapper, slam.buf
     poses = buf.get_poses()
     exposure = m.buf.exposure.numpy()  # [capacity, C, 2] (log a, b)
     for k in range(len(buf)):
         colour, out = m.render(Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
-        col, dep = colour.numpy(), out.depth.numpy()
+        col, dep, alpha = colour.numpy(), out.depth.numpy(), out.alpha.numpy()
         for c, spec in enumerate(buf.rig.cameras):
             a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
-            yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
+            yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], alpha[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
 
 
 MAX_HELD_OUT_FRAMES = 20  # non-keyframe frames rendered for psnr_nonkeyframe_db (evenly spaced)
@@ -169,7 +169,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     show = set(np.linspace(0, len(buf) - 1, min(n_render, len(buf))).astype(int).tolist()) if n_render else set()
     psnrs, ssims, depth_err, covered, with_depth = [], [], [], 0, 0
     frames: dict = {}
-    for k, c, col, dep, img, fidx in keyframe_views(slam):
+    covers = [[] for _ in rig.cameras]  # per camera: share of each keyframe view the map covers
+    for k, c, col, dep, alpha, img, fidx in keyframe_views(slam):
+        covers[c].append(float(np.mean(alpha > 0.5)))
         psnrs.append(psnr(col, img))
         ssims.append(ssim(col, img, with_grad=False)[0])
         if fidx not in frames:
@@ -205,6 +207,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "n_nonkeyframe_views": len(held_psnr),
         "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
         "depth_coverage": covered / with_depth if with_depth else None,  # fraction of exact-depth pixels the render gives a depth (depth_l1_m scores only those)
+        "map_coverage_per_camera": {spec.name: _quantiles(covers[c]) for c, spec in enumerate(rig.cameras)},  # share of a keyframe view's pixels the map covers (rendered alpha > 0.5): min and median over keyframes
         "depth_source": slam.prior.name,
         "prior_l1_m": prior_l1,  # the inexact prior against exact depth, before JDSA ...
         "prior_jdsa_l1_m": prior_jdsa_l1,  # ... and after its scale grids (equal with --no-jdsa)

@@ -31,6 +31,7 @@ from ..data.trajectory import Trajectory
 from ..frontend.depth import choose_prior
 from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, NoCorrespondences, SequenceGroundTruthFlow, StereoMatches
 from ..frontend.keyframes import KeyframeSelector
+from ..frontend.keypoint_odometry import KeypointOdometry
 from ..frontend.keypoint_tracker import KeypointTracker
 from ..frontend.stereo import RigStereo
 from ..geometry import matrix_to_quat, quat_to_matrix
@@ -105,6 +106,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
             raise InputError(None, "tracking.correspondences", "none leaves only the keypoint tracks: it needs tracking.keypoints true and tracking.keypoint_weight above 0")
         self.stereo_matches = StereoMatches(self.stereo)
         self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None
+        self.odometry = KeypointOdometry(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None  # every frame's motion
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
@@ -169,6 +171,8 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         for idx in range(start, n):
             frame = self.seq[idx]
             t0 = time.perf_counter()
+            if self.odometry is not None:
+                self.odometry.track(idx, frame.images, frame.depths if self.exact_depth else None, depth_at=None if self.exact_depth or self.stereo.pairs else self._frame_depth)
             is_kf = last_images is None
             if not is_kf:  # the keyframe test's flows also tell whether the rig stood still since the frame before
                 is_kf, self.frame_motion[idx] = self.selector.is_keyframe(last_images, frame.images)
@@ -207,9 +211,38 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         curve = [(i, r.loss, r.psnr) for i, r in enumerate(self.mapper.history)]
         return RunResult(traj, kf_frames, curve, dict(self.seconds))
 
+    def given_pose(self, index: int):
+        """A pose given for frame ``index`` (:class:`~mcgs_warp.system.posed_mapping.PosedMapping`), else None."""
+        return None
+
+    def held(self, keyframes):
+        """Keyframes whose poses MCBA holds (None: the first of the window, the gauge)."""
+        return None
+
+    def _filler(self, fa: int, fb: int):
+        """Poses [frame -> 4x4] that place the frames between keyframes at frames ``fa`` and
+        ``fb`` (:meth:`trajectory`): the keypoint odometry's where it placed every frame of
+        the span, else None."""
+        odo = self.odometry
+        return odo.poses if odo is not None and odo.span_tracked(fa, fb) else None
+
+    def _frame_depth(self, f: int, c: int, uv: np.ndarray) -> np.ndarray:
+        """Solved depth [M] (m, 0 unknown) at pixels ``uv`` of frame ``f``'s camera ``c``
+        where that frame is a keyframe (the keypoint odometry's points on a monocular rig)."""
+        k = self._keyframe_of.get(f)
+        return self._keypoint_depth(k, c, uv) if k is not None else np.zeros(len(uv))
+
+    @property
+    def _keyframe_of(self) -> dict:
+        return {int(f): k for k, f in enumerate(self.buf.frame_index)}
+
     def trajectory(self, kf_frames) -> Trajectory:
-        """Rig poses for every frame: keyframes as estimated, others interpolated between
-        their keyframes (linear translation, spherical-linear rotation) in time, except that
+        """Rig poses for every frame: keyframes as estimated; a frame between two keyframes
+        that the keypoint odometry placed (every frame of the span) is its odometry pose
+        moved by the correction of the keyframe poses, ``T_kf (T_kf^odo)^-1``, interpolated
+        between the two keyframes in time (DROID-SLAM's trajectory filler does the same with
+        its own tracking). Other frames are interpolated between their keyframes (linear
+        translation, spherical-linear rotation) in time, except that
         time the rig stood still does not count: a frame whose image motion since the frame
         before (:attr:`frame_motion`) is below :data:`STILL_MOTION` did not move
         (:func:`moving_time`). So a pause stands still, and a drive is plain time
@@ -221,6 +254,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         out = np.zeros((len(stamps), 4, 4))
         q_kf = matrix_to_quat(T_kf[:, :3, :3])
         clocks: dict = {}
+        fillers: dict = {}  # (fa, fb) -> frame poses that place the frames between (:meth:`_filler`) or None
         for i, t in enumerate(stamps):
             j = int(np.clip(np.searchsorted(t_kf, t), 1, max(len(t_kf) - 1, 1))) if len(t_kf) > 1 else 0
             if len(t_kf) == 1:
@@ -229,6 +263,16 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
             a, b = j - 1, j
             u = float(np.clip((t - t_kf[a]) / max(t_kf[b] - t_kf[a], 1e-12), 0.0, 1.0))
             fa, fb = self.buf.frame_index[a], self.buf.frame_index[b]
+            if fa < i < fb and (fa, fb) not in fillers:
+                fillers[(fa, fb)] = self._filler(fa, fb)
+            src = fillers.get((fa, fb))
+            if fa < i < fb and src is not None:
+                ca, cb = T_kf[a] @ np.linalg.inv(src[fa]), T_kf[b] @ np.linalg.inv(src[fb])
+                corr = np.eye(4)
+                corr[:3, 3] = (1 - u) * ca[:3, 3] + u * cb[:3, 3]
+                corr[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(ca[:3, :3]), matrix_to_quat(cb[:3, :3]), u))
+                out[i] = corr @ src[i]
+                continue
             if fa < i < fb:
                 if (fa, fb) not in clocks:  # once per keyframe interval
                     clocks[(fa, fb)] = moving_time(stamps[fa : fb + 1], [self.frame_motion.get(f) for f in range(fa + 1, fb + 1)])

@@ -73,3 +73,16 @@ class Problem:
         for e, (i, ci) in enumerate(self.edges[:, :2]):
             used[i, ci] |= self.weights[e] > 0
         return np.abs(self.true_disp[used] / disp[used] - 1.0)
+
+
+def perturbed_pair(poses, slot: int, k: int, eps: float):
+    """``poses`` [n,4,4] with pose ``slot`` right-multiplied by ``Exp(+eps e_k)`` and by
+    ``Exp(-eps e_k)``: the two points of a central difference along twist coordinate ``k``."""
+    from mcgs_warp.geometry import se3_exp
+
+    d = np.zeros(6)
+    d[k] = eps
+    Pp, Pm = poses.copy(), poses.copy()
+    Pp[slot] = Pp[slot] @ se3_exp(d)
+    Pm[slot] = Pm[slot] @ se3_exp(-d)
+    return Pp, Pm

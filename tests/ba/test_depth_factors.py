@@ -7,7 +7,7 @@ import numpy as np
 from mcgs_warp.ba.depth_factors import DepthAlignmentFactors
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
 from mcgs_warp.geometry import se3_exp
-from problems import Problem
+from problems import Problem, perturbed_pair
 
 
 def factors(P, weight=30.0, delta=1.0):
@@ -29,11 +29,7 @@ def test_depth_alignment_jacobian_matches_finite_differences(synthetic_seq):
     eps = 1e-6
     for s in (1, 2):
         for k in range(6):
-            d = np.zeros(6)
-            d[k] = eps
-            Pp, Pm = poses.copy(), poses.copy()
-            Pp[s] = Pp[s] @ se3_exp(d)
-            Pm[s] = Pm[s] @ se3_exp(-d)
+            Pp, Pm = perturbed_pair(poses, s, k, eps)
             num = (f.cost(Pp) - f.cost(Pm)) / (2 * eps)
             np.testing.assert_allclose(-rhs[6 * s + k], num, rtol=2e-3, atol=1e-6)
 

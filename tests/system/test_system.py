@@ -50,6 +50,9 @@ def test_run_writes_every_output(run_dir):
     # depth L1 here is against the exact depth the map was trained on (0.068 m): how well the
     # map renders its own target; depth it never saw is scored in tests/system/test_rgb_only.py
     assert metrics["psnr_db"] > 27 and metrics["depth_l1_m"] < 0.15 and metrics["depth_coverage"] > 0.95, metrics
+    # the map covers every camera's view (a closed room: nothing is sky)
+    cover = metrics["map_coverage_per_camera"]
+    assert len(cover) == 3 and min(v["min"] for v in cover.values()) > 0.9, cover
     assert metrics["loop_edges"] == 0  # six frames driving forward revisit nothing: an edge would be false
     assert metrics["tracking_failures"] == 0 and metrics["metric_scale"] is True
     traj = read_tum(run / "trajectory.txt")
@@ -183,7 +186,7 @@ def test_frames_between_keyframes_skip_the_time_the_rig_stood_still():
     T0, T5 = np.eye(4), np.eye(4)
     T5[:3, 3] = [2.0, 0.0, 0.0]
     buf = SimpleNamespace(get_poses=lambda: np.stack([T0, T5]), timestamps=[0.0, 0.5], frame_index=[0, 5])
-    fake = SimpleNamespace(buf=buf, seq=SimpleNamespace(timestamps=np.arange(6) * 0.1), frame_motion={1: 0.001, 2: 0.0005, 3: 0.001, 4: 0.05, 5: 0.05})
+    fake = SimpleNamespace(buf=buf, seq=SimpleNamespace(timestamps=np.arange(6) * 0.1), frame_motion={1: 0.001, 2: 0.0005, 3: 0.001, 4: 0.05, 5: 0.05}, _filler=lambda fa, fb: None)  # no keypoint odometry
     x = SLAM.trajectory(fake, [0, 5]).positions[:, 0]
     np.testing.assert_allclose(x, [0.0, 0.0, 0.0, 0.0, 1.0, 2.0], atol=1e-12)
     # steady motion; uneven motion (a car turning: parallax and rotation); no motions

@@ -1,0 +1,211 @@
+"""Keypoint odometry: the rig pose of *every* frame from keypoints, as a classical stereo VO.
+
+Keyframes are a few frames apart; at highway speed that is metres, where keypoint and dense
+matches both thin out. Frame to frame the motion is small and the matches are many. So every
+frame's keypoints (:mod:`.keypoints`) are matched against the last ``frames`` frames and
+placed by the multi-camera PnP (:mod:`.pnp`, constant velocity as a hypothesis and the
+fallback), their PnP inliers join keypoint tracks (:class:`~mcgs_warp.ba.keypoint_tracks.KeypointTracks`),
+and a sliding-window bundle adjustment over the last ``window`` frames (the tracks' reprojection
+factors, :class:`~mcgs_warp.ba.keypoint_factors.KeypointFactors`, Levenberg-Marquardt, the
+oldest pose held) refines poses and points. A keypoint's 3D point comes from what the rig
+measures (stereo between overlapping cameras, sensor depth), from its track as solved, or
+from the caller's ``depth_at`` (the SLAM's solved keyframe depth: a monocular rig).
+
+What it gives the SLAM (:mod:`mcgs_warp.system.slam`): the motion between two frames,
+:meth:`KeypointOdometry.relative`, with its covariance from the window's information
+(:meth:`KeypointOdometry.relative_covariance`, grid-pixel units, as MCBA's), which starts a new
+keyframe, ties consecutive keyframes in MCBA (:class:`~mcgs_warp.ba.pose_factors.RelativePoseFactors`)
+and places the frames between keyframes. Poses live in the odometry's own world frame
+(the first frame's rig pose); only relative motion leaves this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ba.keypoint_factors import KeypointFactors
+from ..ba.keypoint_tracks import KeypointTracks
+from ..kernels.camera import FAR
+from ..geometry import adjoint, invert, se3_exp
+from ..rig import Rig
+from .keypoint_tracker import KeypointConfig, KeypointTracker
+
+
+@dataclass
+class OdometryConfig:
+    frames: int = 3  # match a new frame against this many previous frames
+    window: int = 5  # frames in the sliding-window bundle adjustment
+    iterations: int = 5  # LM iterations per frame
+    stride: int = 8  # residual unit: full-resolution px / stride (MCBA's grid pixels)
+    huber_px: float = 1.0  # full-resolution px: Huber threshold of the keypoint residuals (keypoints are localized to a pixel; the dense grid's 1 grid px would be 8 here)
+
+
+@dataclass
+class OdometryStep:
+    T_w_b: np.ndarray  # [4,4] in the odometry's world frame
+    tracked: bool  # placed by keypoints (False: constant velocity carried it)
+    inliers: int = 0
+
+
+class KeypointOdometry:
+    def __init__(self, rig: Rig, overlap=None, stereo_pairs=(), config: OdometryConfig | None = None, keypoints: KeypointConfig | None = None, seed: int = 0):
+        self.cfg = config or OdometryConfig()
+        self.rig = rig
+        self.tracker = KeypointTracker(rig, overlap, stereo_pairs, keypoints, seed=seed)
+        self.tracks = KeypointTracks(1.0)
+        self.T_b_c = np.stack([c.T_b_c for c in rig.cameras])
+        self.frames: list[int] = []  # frame indices in the order tracked
+        self.poses: dict[int, np.ndarray] = {}  # frame -> T_w_b (odometry world)
+        self.tracked: dict[int, bool] = {}  # frame -> placed by keypoints
+        self.step_cov: dict[int, np.ndarray] = {}  # frame -> [6,6] covariance of the step from the frame before (right perturbation of T_prev^-1 T_frame)
+
+    @property
+    def views(self) -> dict:
+        """frame -> its keypoints per camera (the last ``frames`` + ``window`` frames are kept)."""
+        return self.tracker.views
+
+    def track(self, index: int, images, depths=None, depth_at=None) -> OdometryStep:
+        """Place frame ``index`` (after every earlier one). ``depths``: exact sensor depth
+        per camera or None; ``depth_at(frame, c, uv)`` -> depth [M] (m, 0 unknown) for
+        earlier frames' keypoints without their own depth."""
+        views = self.tracker.detect(images, depths)
+        prev = self.frames[-self.cfg.frames :]
+        P = self.poses
+        if not prev:
+            T, res = np.eye(4), None
+        else:
+            a = P[prev[-1]]
+            guess = a if len(prev) < 2 else a @ invert(P[prev[-2]]) @ a  # constant velocity
+            stack = np.stack([P.get(f, np.eye(4)) for f in range(max(prev) + 1)]) if prev else None
+            res = self.tracker.localize(views, prev, stack, depth_at, guess=guess, solved=self.tracks.world_points)
+            T = res.T_w_b if res is not None else guess
+        self.frames.append(index)
+        P[index] = T
+        self.tracked[index] = res is not None or not prev
+        self.tracker.keep(index, views)
+        self.tracks.add_views(index, views)
+        if res is not None:
+            self.tracks.link(index, res.matches)
+        if prev:
+            self._adjust(depth_at)
+        self._forget()
+        return OdometryStep(P[index], self.tracked[index], 0 if res is None else res.n_inliers)
+
+    def _adjust(self, depth_at) -> None:
+        """LM over the last ``window`` frames' poses and tracks (the oldest held), then the
+        newest step's covariance from the window's information."""
+        cfg = self.cfg
+        window = self.frames[-cfg.window :]
+        poses_of = self.poses
+        stack = np.stack([poses_of.get(f, np.eye(4)) for f in range(max(window) + 1)])
+        prob, roots = self.tracks.problem(window, lambda k: self.tracker.views[k], stack, self.T_b_c, depth_at)
+        n = len(window)
+        new = window[-1]
+        if prob is None:
+            return
+        f = KeypointFactors(prob, self.rig, cfg.stride, cfg.huber_px / cfg.stride, 1.0 / FAR)
+        Pw = np.stack([poses_of[k] for k in window])
+        free = np.arange(6, 6 * n)
+        lam, cur = 1e-4, f.cost(Pw)
+        for _ in range(cfg.iterations):
+            S, rhs = f.reduced_terms(Pw, lam)
+            while True:
+                Sf = S[np.ix_(free, free)]
+                Sf = Sf + lam * np.diag(np.diag(Sf)) + 1e-9 * np.eye(len(free))
+                dx = np.zeros(6 * n)
+                try:
+                    dx[free] = np.linalg.solve(Sf, rhs[free])
+                except np.linalg.LinAlgError:
+                    dx[:] = np.nan
+                if np.all(np.isfinite(dx)):
+                    f.candidate(dx)
+                    Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
+                    c = f.cost(Pc, f.disp_c)
+                    if c <= cur:
+                        Pw, cur, lam = Pc, c, max(lam / 3.0, 1e-9)
+                        f.accept()
+                        break
+                lam *= 4.0
+                if lam > 1e8:
+                    break
+            if lam > 1e8:
+                break
+        for s, k in enumerate(window):
+            poses_of[k] = Pw[s]
+        prob.disp[:] = f.disp
+        stack = np.stack([poses_of.get(k, np.eye(4)) for k in range(max(window) + 1)])
+        self.tracks.update(prob, roots, window, stack, self.T_b_c)
+        if self.tracked[new]:
+            self.step_cov[new] = self._step_covariance(f, Pw)
+
+    def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray) -> np.ndarray:
+        """[6,6] covariance of the newest step ``T_prev^-1 T_new`` (right perturbation), from
+        the inverse of the window's reduced information (oldest pose held; unit-variance grid
+        pixels, the keypoint observations' Huber weights)."""
+        n = len(Pw)
+        S = f.reduced_terms(Pw, 0.0)[0][6:, 6:]
+        try:
+            cov = np.linalg.inv(S + 1e-9 * np.eye(len(S)))
+        except np.linalg.LinAlgError:
+            return np.full((6, 6), np.inf)
+        J = np.zeros((6, 6 * (n - 1)))
+        J[:, -6:] = np.eye(6)
+        if n > 2:  # the previous pose is free too: d(T_prev^-1 T_new) = -Ad(T_step^-1) xi_prev + xi_new
+            J[:, -12:-6] = -adjoint(invert(invert(Pw[-2]) @ Pw[-1]))
+        return J @ cov @ J.T
+
+    @property
+    def recent(self) -> list:
+        """The frames whose keypoints are kept: those a new frame is matched against or adjusted with."""
+        return self.frames[-max(self.cfg.frames, self.cfg.window) :]
+
+    def _forget(self) -> None:
+        """Drop keypoints (and track nodes) of frames no new frame will match or adjust again."""
+        keep = set(self.recent)
+        for k in [k for k in self.tracker.views if k not in keep]:
+            del self.tracker.views[k]
+        self.tracks.retain(keep)
+
+    def state_arrays(self) -> dict:
+        """The odometry as arrays for a checkpoint: every frame's pose, whether keypoints
+        placed it and its step covariance (NaN: none), and the recent frames' tracks (their
+        keypoints are detected again on resume, :meth:`load_state_arrays`)."""
+        f = np.array(self.frames, np.int64)
+        cov = np.stack([self.step_cov.get(int(i), np.full((6, 6), np.nan)) for i in f]) if len(f) else np.zeros((0, 6, 6))
+        return {"odometry.frames": f, "odometry.poses": np.stack([self.poses[int(i)] for i in f]) if len(f) else np.zeros((0, 4, 4)),
+                "odometry.tracked": np.array([self.tracked[int(i)] for i in f], bool), "odometry.step_cov": cov,
+                **self.tracks.state_arrays("odometry.tracks.")}
+
+    def load_state_arrays(self, a: dict, views_of) -> None:
+        """Restore :meth:`state_arrays`; ``views_of(frame)`` detects a recent frame's keypoints again."""
+        self.frames = [int(i) for i in a["odometry.frames"]]
+        self.poses = {i: T for i, T in zip(self.frames, a["odometry.poses"])}
+        self.tracked = {i: bool(t) for i, t in zip(self.frames, a["odometry.tracked"])}
+        self.step_cov = {i: c for i, c in zip(self.frames, a["odometry.step_cov"]) if np.all(np.isfinite(c))}
+        for i in self.recent:
+            views = views_of(i)
+            self.tracker.keep(i, views)
+            self.tracks.add_views(i, views)
+        self.tracks.load_state_arrays(a, "odometry.tracks.")
+
+    def relative(self, a: int, b: int) -> np.ndarray:
+        """``T_a^-1 T_b`` [4,4]: the rig's motion from frame ``a`` to frame ``b``."""
+        return invert(self.poses[a]) @ self.poses[b]
+
+    def span_tracked(self, a: int, b: int) -> bool:
+        """Whether keypoints placed every frame after ``a`` up to ``b`` (tracked frames only)."""
+        fs = [f for f in self.frames if a < f <= b]
+        return a in self.poses and bool(fs) and all(self.tracked[f] and f in self.step_cov for f in fs)
+
+    def relative_covariance(self, a: int, b: int) -> np.ndarray:
+        """[6,6] covariance of :meth:`relative` ``(a, b)`` (right perturbation at ``b``): the
+        steps' covariances moved to ``b`` by the adjoint of the motion after them and summed
+        (steps taken as independent)."""
+        fs = [f for f in self.frames if a < f <= b]
+        cov = np.zeros((6, 6))
+        for f in fs:
+            A = adjoint(invert(self.relative(f, b)))
+            cov += A @ self.step_cov[f] @ A.T
+        return cov

@@ -1,0 +1,79 @@
+"""Keypoint odometry: every frame's motion from keypoints (PnP, then a sliding-window bundle
+adjustment), with a covariance, and no claim across a frame it could not place."""
+
+import numpy as np
+
+from mcgs_warp.ba.edges import camera_overlap
+from mcgs_warp.frontend.keypoint_odometry import KeypointOdometry
+from mcgs_warp.geometry import invert, pose_distance
+
+
+def test_odometry_measures_every_frames_motion_with_a_covariance(synthetic_seq):
+    seq = synthetic_seq
+    odo = KeypointOdometry(seq.rig, camera_overlap(seq.rig, stride=8))
+    gt = seq.groundtruth.poses
+    for i in range(len(seq)):
+        f = seq[i]
+        assert odo.track(i, f.images, f.depths).tracked
+    n = len(seq)
+    for a, b in ((0, 1), (2, 5), (0, n - 1)):
+        dt, dr = pose_distance(odo.relative(a, b), invert(gt[a]) @ gt[b])
+        assert dt < 0.008 and dr < np.radians(0.1), (a, b, dt, dr)  # m, rad (the rig moves 0.15 m per frame)
+        assert odo.span_tracked(a, b)
+        cov = odo.relative_covariance(a, b)
+        assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
+    # uncertainty grows with the span
+    assert np.trace(odo.relative_covariance(0, n - 1)) > np.trace(odo.relative_covariance(0, 1))
+
+
+def test_a_frame_it_cannot_place_breaks_the_span(synthetic_seq):
+    seq = synthetic_seq
+    odo = KeypointOdometry(seq.rig, camera_overlap(seq.rig, stride=8))
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        f = seq[i]
+        images = [rng.integers(0, 255, im.shape, dtype=np.uint8) for im in f.images] if i == 3 else f.images
+        step = odo.track(i, images, None if i == 3 else f.depths)
+        assert step.tracked == (i != 3)
+    assert odo.span_tracked(0, 2) and odo.span_tracked(3, 5)
+    assert not odo.span_tracked(2, 3) and not odo.span_tracked(0, 5)
+
+
+class _Views:
+    def __init__(self, n, partners=None):
+        self.n, self.partners = n, partners or {}
+
+    def __len__(self):
+        return self.n
+
+
+def test_tracks_retain_keeps_the_recent_frames_tracks_and_points():
+    from mcgs_warp.ba.keypoint_tracks import KeypointTracks
+
+    t = KeypointTracks()
+    for k in range(4):
+        t.add_views(k, [_Views(3)])
+    # a track through frames 0..3 (keypoint 0), one through 1..2 (keypoint 1), one in 0 and 3 only (keypoint 2)
+    t.link(1, [(0, 0, 0, 0, 0)]), t.link(2, [(1, 0, 0, 0, 0), (1, 0, 1, 0, 1)]), t.link(3, [(2, 0, 0, 0, 0), (0, 0, 2, 0, 2)])
+    t.points[t._find(0)] = np.array([1.0, 2.0, 3.0])
+    t.retain([2, 3])
+    assert len(t.parent) == 6 and set(t.base) == {(2, 0), (3, 0)}
+    same = lambda a, b: t._find(t.base[a[:2]] + a[2]) == t._find(t.base[b[:2]] + b[2])
+    assert same((2, 0, 0), (3, 0, 0)) and not same((2, 0, 1), (3, 0, 1)) and not same((3, 0, 2), (2, 0, 2))
+    np.testing.assert_array_equal(t.world_points(3, 0)[0], [1.0, 2.0, 3.0])
+    assert np.isnan(t.world_points(3, 0)[1:]).all()
+    saved = t.state_arrays("x.")
+    u = KeypointTracks()
+    u.add_views(2, [_Views(3)]), u.add_views(3, [_Views(3)])
+    u.load_state_arrays(saved, "x.")
+    assert u.parent == t.parent and u.points.keys() == t.points.keys()
+
+
+def test_odometry_keeps_only_its_recent_frames(synthetic_seq):
+    seq = synthetic_seq
+    odo = KeypointOdometry(seq.rig, camera_overlap(seq.rig, stride=8))
+    for i in range(len(seq)):
+        odo.track(i, seq[i].images, seq[i].depths)
+    assert sorted(odo.views) == odo.recent == list(range(len(seq) - 5, len(seq)))
+    assert {k for k, _ in odo.tracks.base} == set(odo.recent)
+    assert len(odo.poses) == len(odo.step_cov) + 1 == len(seq)

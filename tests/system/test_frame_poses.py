@@ -1,0 +1,38 @@
+"""The frames between keyframes: placed by the keypoint odometry (moved by the keyframes'
+correction) where it tracked the span, else interpolated in time."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from mcgs_warp.geometry import se3_exp
+from mcgs_warp.system.slam import SLAM
+
+
+def _curve(n):
+    """A car turning and braking: rig poses [n,4,4] at 10 Hz."""
+    poses, T = [], np.eye(4)
+    for i in range(n):
+        poses.append(T.copy())
+        T = T @ se3_exp([0.0, 0.0, 1.5 - 0.12 * i, 0.0, 0.12, 0.0])  # forward, slowing, yawing
+    return np.stack(poses)
+
+
+def _slam(truth, kf, filler):
+    """The parts of a SLAM that :meth:`SLAM.trajectory` reads: keyframe poses, times and
+    frames, frame times, image motions, and the filler's poses."""
+    stamps = 0.1 * np.arange(len(truth))
+    buf = SimpleNamespace(get_poses=lambda: truth[kf], timestamps=list(stamps[kf]), frame_index=list(kf))
+    return SimpleNamespace(buf=buf, seq=SimpleNamespace(timestamps=stamps), frame_motion={}, _filler=lambda fa, fb: filler)
+
+
+def test_frames_between_keyframes_follow_the_odometry():
+    truth = _curve(9)
+    kf = [0, 4, 8]
+    G = se3_exp([3.0, -1.0, 2.0, 0.1, -0.4, 0.2])  # the odometry's own world frame
+    odometry = {i: G @ T for i, T in enumerate(truth)}
+    placed = SLAM.trajectory(_slam(truth, kf, odometry), kf).poses
+    np.testing.assert_allclose(placed, truth, atol=1e-9)
+    interpolated = SLAM.trajectory(_slam(truth, kf, None), kf).poses  # no odometry: in time
+    assert np.linalg.norm(interpolated[1:4, :3, 3] - truth[1:4, :3, 3], axis=1).max() > 0.05
+    np.testing.assert_allclose(interpolated[kf], truth[kf], atol=1e-9)

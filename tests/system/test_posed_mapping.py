@@ -1,0 +1,68 @@
+"""Mapping from given poses (``mcgs-slam map``): with the true poses the map reproduces the
+synthetic scene and the poses stay exactly as given; a trajectory that does not cover the
+sequence, or a sequence without ground truth, is a clear error."""
+
+import numpy as np
+import pytest
+
+from mcgs_warp.cli import main
+from mcgs_warp.data.synthetic import generate
+from mcgs_warp.data.trajectory import Trajectory, read_tum, write_tum
+from mcgs_warp.errors import InputError
+from mcgs_warp.geometry import invert, se3_exp
+from mcgs_warp.system.config import RunConfig
+from mcgs_warp.system.run import run_sequence
+
+
+def small_config():
+    cfg = RunConfig()
+    cfg.tracking.mcba_iterations = 2
+    cfg.mapping.iterations_per_keyframe = 4
+    cfg.refinement.global_ba_iterations = 1
+    cfg.refinement.iterations = 20
+    cfg.output.renders = 0
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def rgb_sequence(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("posed") / "data", n_cameras=3, n_frames=8, seed=3, progress=False, depth="none")
+
+
+def test_mapping_from_the_true_poses_reproduces_the_scene(rgb_sequence, tmp_path):
+    seq = rgb_sequence
+    m = run_sequence(seq.root, tmp_path / "map", small_config(), progress=False, poses="groundtruth")
+    gt = seq.groundtruth.poses
+    traj = read_tum(tmp_path / "map" / "trajectory.txt")
+    # every frame at its given pose, in the first frame's rig frame
+    np.testing.assert_allclose(traj.poses, invert(gt[0])[None] @ gt, atol=1e-5)
+    assert m["ate_se3_rmse_m"] < 1e-5 and m["tracking_failures"] == 0
+    assert m["psnr_db"] > 27 and m["depth_l1_m"] < 0.3 and m["depth_coverage"] > 0.9, m  # RGB only: depth from the rig stereo and the time baseline
+
+
+def test_refine_poses_lets_the_refinement_move_a_perturbed_trajectory(rgb_sequence, tmp_path):
+    seq = rgb_sequence
+    gt = seq.groundtruth
+    rng = np.random.default_rng(0)
+    noisy = Trajectory(gt.timestamps, np.stack([T @ se3_exp(np.concatenate([rng.normal(0, 0.02, 3), rng.normal(0, 0.004, 3)])) if i else T for i, T in enumerate(gt.poses)]))
+    held = run_sequence(seq.root, tmp_path / "held", small_config(), progress=False, poses=noisy)
+    np.testing.assert_allclose(read_tum(tmp_path / "held" / "trajectory.txt").poses, invert(noisy.poses[0])[None] @ noisy.poses, atol=1e-5)
+    refined = run_sequence(seq.root, tmp_path / "refined", small_config(), progress=False, poses=noisy, refine_poses=True)
+    moved = read_tum(tmp_path / "refined" / "trajectory.txt").poses
+    assert np.abs(moved - invert(noisy.poses[0])[None] @ noisy.poses).max() > 1e-3
+    assert refined["ate_keyframes_se3_rmse_m"] < held["ate_keyframes_se3_rmse_m"], (refined["ate_keyframes_se3_rmse_m"], held["ate_keyframes_se3_rmse_m"])
+
+
+def test_given_poses_must_cover_the_sequence(rgb_sequence, tmp_path, capsys):
+    seq = rgb_sequence
+    gt = seq.groundtruth
+    write_tum(tmp_path / "short.txt", Trajectory(gt.timestamps[:4], gt.poses[:4]))
+    assert main(["map", "--data", str(seq.root), "--out", str(tmp_path / "r"), "--poses", str(tmp_path / "short.txt")]) == 2
+    err = capsys.readouterr().err
+    assert "short.txt" in err and "outside the given poses" in err and "frame 4" in err
+    (seq.root / "groundtruth.txt").rename(tmp_path / "gt.txt")
+    try:
+        with pytest.raises(InputError, match="ground-truth poses"):
+            run_sequence(seq.root, tmp_path / "r2", small_config(), progress=False, poses="groundtruth")
+    finally:
+        (tmp_path / "gt.txt").rename(seq.root / "groundtruth.txt")
