@@ -74,7 +74,7 @@ class KeypointTracks:
 
     def problem(self, window, views_of, poses: np.ndarray, T_b_c: np.ndarray, depth_at=None) -> tuple[KeypointProblem | None, list]:
         """The window's keypoint problem (slots in the order of ``window``) and the roots of
-        its tracks. ``views_of(k)``: keyframe k's ViewKeypoints; ``poses`` [K,4,4] indexed by
+        its tracks. ``views_of(k)``: keyframe k's ViewKeypoints; ``poses`` [K,4,4] (or a dict) indexed by
         keyframe; ``T_b_c`` [C,4,4]; ``depth_at(k, c, uv)`` -> depth [M] (0: unknown)."""
         slot = {k: s for s, k in enumerate(window)}
         groups: dict = {}

@@ -78,8 +78,7 @@ class KeypointOdometry:
         else:
             a = P[prev[-1]]
             guess = a if len(prev) < 2 else a @ invert(P[prev[-2]]) @ a  # constant velocity
-            stack = np.stack([P.get(f, np.eye(4)) for f in range(max(prev) + 1)]) if prev else None
-            res = self.tracker.localize(views, prev, stack, depth_at, guess=guess, solved=self.tracks.world_points)
+            res = self.tracker.localize(views, prev, P, depth_at, guess=guess, solved=self.tracks.world_points)  # poses by frame: a dict serves
             T = res.T_w_b if res is not None else guess
         self.frames.append(index)
         P[index] = T
@@ -99,8 +98,7 @@ class KeypointOdometry:
         cfg = self.cfg
         window = self.frames[-cfg.window :]
         poses_of = self.poses
-        stack = np.stack([poses_of.get(f, np.eye(4)) for f in range(max(window) + 1)])
-        prob, roots = self.tracks.problem(window, lambda k: self.tracker.views[k], stack, self.T_b_c, depth_at)
+        prob, roots = self.tracks.problem(window, lambda k: self.tracker.views[k], poses_of, self.T_b_c, depth_at)
         n = len(window)
         new = window[-1]
         if prob is None:
@@ -135,8 +133,7 @@ class KeypointOdometry:
         for s, k in enumerate(window):
             poses_of[k] = Pw[s]
         prob.disp[:] = f.disp
-        stack = np.stack([poses_of.get(k, np.eye(4)) for k in range(max(window) + 1)])
-        self.tracks.update(prob, roots, window, stack, self.T_b_c)
+        self.tracks.update(prob, roots, window, poses_of, self.T_b_c)
         if self.tracked[new]:
             self.step_cov[new] = self._step_covariance(f, Pw)
 
