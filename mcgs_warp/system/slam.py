@@ -1,15 +1,17 @@
 """The SLAM pipeline's wiring (paper Fig. 3): what the system is made of and the order in
 which it runs.
 
-Per rig frame: the keyframe test (mean DIS flow since the last keyframe); for a new keyframe
-the keyframe step (:mod:`.keyframe_step`: constant-velocity start, depth prior, MCBA (+ JDSA)
+Per rig frame: the keypoint odometry (its motion since the frame before,
+:mod:`~mcgs_warp.frontend.keypoint_odometry`), the keyframe test (mean DIS flow since the last
+keyframe); for a new keyframe the keyframe step (:mod:`.keyframe_step`: the odometry's or the
+constant-velocity start, depth prior, MCBA (+ JDSA)
 over the sliding window, tracking health), then mapping of its views and mapping iterations
 over the window. Bootstrap: without exact depth, keyframe 0 is mapped only after keyframe 1's
 MCBA, so that no Gaussian is seeded from the constant start depth. After the last frame the
 offline stage (:mod:`.offline`: global MCBA with long and loop edges, photo-consistent depth
 targets, joint refinement). The online state is checkpointed after every keyframe
-(:mod:`.checkpoint`). Non-keyframe poses are interpolated between keyframes. Deterministic for
-a seed.
+(:mod:`.checkpoint`). Non-keyframe poses come from the odometry (moved by the keyframes'
+correction) or are interpolated between keyframes. Deterministic for a seed.
 """
 
 from __future__ import annotations
