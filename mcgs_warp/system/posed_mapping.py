@@ -21,9 +21,9 @@ import numpy as np
 
 from ..data.trajectory import Trajectory
 from ..errors import InputError
-from ..geometry import invert, matrix_to_quat, quat_to_matrix
+from ..geometry import invert
 from .config import RunConfig
-from .slam import SLAM, slerp
+from .slam import SLAM, interpolate_pose
 
 
 def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarray:
@@ -32,7 +32,6 @@ def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarr
     t = np.asarray(traj.timestamps, np.float64)
     stamps = np.asarray(stamps, np.float64)
     out = np.zeros((len(stamps), 4, 4))
-    q = matrix_to_quat(traj.poses[:, :3, :3])
     for n, s in enumerate(stamps):
         if s < t[0] - max_dt or s > t[-1] + max_dt:
             raise InputError(source, None, f"frame {n} at t = {s:.6f} s lies outside the given poses ({t[0]:.6f}-{t[-1]:.6f} s, tolerance {max_dt} s)")
@@ -41,9 +40,7 @@ def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarr
             out[n] = traj.poses[0]
             continue
         u = float(np.clip((s - t[j - 1]) / max(t[j] - t[j - 1], 1e-12), 0.0, 1.0))
-        out[n] = np.eye(4)
-        out[n, :3, 3] = (1 - u) * traj.poses[j - 1, :3, 3] + u * traj.poses[j, :3, 3]
-        out[n, :3, :3] = quat_to_matrix(slerp(q[j - 1], q[j], u))
+        out[n] = interpolate_pose(traj.poses[j - 1], traj.poses[j], u)
     return out
 
 

@@ -254,7 +254,6 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         t_kf = np.array(self.buf.timestamps)
         stamps = np.asarray(self.seq.timestamps, dtype=np.float64)
         out = np.zeros((len(stamps), 4, 4))
-        q_kf = matrix_to_quat(T_kf[:, :3, :3])
         clocks: dict = {}
         fillers: dict = {}  # (fa, fb) -> frame poses that place the frames between (:meth:`_filler`) or None
         for i, t in enumerate(stamps):
@@ -269,20 +268,14 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
                 fillers[(fa, fb)] = self._filler(fa, fb)
             src = fillers.get((fa, fb))
             if fa < i < fb and src is not None:
-                ca, cb = T_kf[a] @ np.linalg.inv(src[fa]), T_kf[b] @ np.linalg.inv(src[fb])
-                corr = np.eye(4)
-                corr[:3, 3] = (1 - u) * ca[:3, 3] + u * cb[:3, 3]
-                corr[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(ca[:3, :3]), matrix_to_quat(cb[:3, :3]), u))
-                out[i] = corr @ src[i]
+                out[i] = interpolate_pose(T_kf[a] @ np.linalg.inv(src[fa]), T_kf[b] @ np.linalg.inv(src[fb]), u) @ src[i]
                 continue
             if fa < i < fb:
                 if (fa, fb) not in clocks:  # once per keyframe interval
                     clocks[(fa, fb)] = moving_time(stamps[fa : fb + 1], [self.frame_motion.get(f) for f in range(fa + 1, fb + 1)])
                 if clocks[(fa, fb)] is not None:
                     u = float(clocks[(fa, fb)][i - fa])
-            out[i] = np.eye(4)
-            out[i, :3, 3] = (1 - u) * T_kf[a, :3, 3] + u * T_kf[b, :3, 3]
-            out[i, :3, :3] = quat_to_matrix(slerp(q_kf[a], q_kf[b], u))
+            out[i] = interpolate_pose(T_kf[a], T_kf[b], u)
         return Trajectory(stamps, out)
 
 
@@ -304,6 +297,15 @@ def moving_time(stamps, motions, still: float = STILL_MOTION):
         return None
     clock = np.concatenate([[0.0], np.cumsum(np.where(moved, np.diff(np.asarray(stamps, np.float64)), 0.0))])
     return clock / clock[-1]
+
+
+def interpolate_pose(A: np.ndarray, B: np.ndarray, u: float) -> np.ndarray:
+    """The pose [4,4] a fraction ``u`` of the way from ``A`` to ``B``: linear translation,
+    spherical-linear rotation."""
+    T = np.eye(4)
+    T[:3, 3] = (1 - u) * A[:3, 3] + u * B[:3, 3]
+    T[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(A[:3, :3]), matrix_to_quat(B[:3, :3]), u))
+    return T
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
