@@ -25,6 +25,10 @@ def _add_sequence_arguments(p) -> None:
     p.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
     p.add_argument("--kitti-cameras", choices=("grey", "colour"), default="grey",
                      help="KITTI odometry folders: the grey pair image_0/image_1 (default) or the colour pair image_2/image_3")
+    p.add_argument("--segment", default=None, metavar="NAME",
+                     help="Waymo Open Dataset v2 folders: the segment (context name); nuScenes: the scene, e.g. scene-0061 (default: the only one)")
+    p.add_argument("--waymo-cameras", choices=("front3", "all"), default="front3",
+                     help="Waymo Open Dataset folders: front3 (default: FRONT_LEFT, FRONT, FRONT_RIGHT) or all five cameras")
     p.add_argument("--depth", choices=("auto", "sensor", "stereo", "none"), default=None,
                      help="depth source: sensor (the sequence's depth), stereo (sweep stereo between overlapping "
                      "cameras), none, or auto (default: sensor when every frame has depth, "
@@ -102,6 +106,26 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--poses", required=True, help="TUM trajectory of the rig body (t tx ty tz qx qy qz qw), or 'groundtruth': the sequence's own")
     mp.add_argument("--refine-poses", action="store_true", help="let the final refinement adjust the given poses (default: held)")
     mp.set_defaults(func=cmd_run)
+
+    shared = argparse.ArgumentParser(add_help=False)
+    _add_sequence_arguments(shared)  # run's options; batch redefines --data, --out and --resume below
+    bt = sub.add_parser("batch", parents=[shared], conflict_handler="resolve", help="run many sequences on Ray, one run per sequence, with a summary",
+                        description="Run SLAM on many sequences, each one Ray task running `mcgs-slam run --data SEQ --out OUT/<sequence>` with the options below "
+                        "in a child process; a failed sequence is reported and the others go on (exit code 1 if any failed). OUT/<sequence>/batch.json records a "
+                        "finished run's configuration hash: running the same command again skips what finished and runs the rest. At the end "
+                        "OUT/summary.csv, summary.md and summary.png compare the runs; OUT/logs/<sequence>.log hold their output. Needs Ray: pip install \"mcgs_warp[cluster]\".")
+    bt.add_argument("inputs", nargs="*", metavar="DATA", help="a sequence (folder or ROS bag), a text file listing sequences (one a line, # comments, "
+                    "paths relative to the file) or a folder of sequences (its subfolders and bags that look like sequences); a Waymo Open Dataset v2 "
+                    "folder or a nuScenes root is one run per segment or scene (run --segment NAME), into OUT/<segment>")
+    bt.add_argument("--data", action="extend", nargs="+", default=[], metavar="DATA", help="more inputs, as the positional ones")
+    bt.add_argument("--out", required=True, help="output folder: OUT/<sequence>/ per sequence (its folder or bag name), OUT/summary.*")
+    bt.add_argument("--segment", default=None, metavar="NAME", help="Waymo and nuScenes folders: run this segment or scene alone (default: every one)")
+    bt.add_argument("--resume", action="store_true", help="each unfinished run continues from its OUT/<sequence>/checkpoint.npz (run --resume); finished ones are skipped anyway")
+    bt.add_argument("--address", default=None, help="Ray cluster: auto (the one `ray start` runs on this machine) or ray://HOST:10001 (Ray Client, pip install \"ray[client]\"); "
+                    "default: a local Ray instance with this machine's cores")
+    bt.add_argument("--cpus-per-run", type=float, default=1.0, metavar="N", help="CPUs Ray reserves for each run (default 1)")
+    bt.add_argument("--gpus-per-run", type=float, default=0.0, metavar="N", help="GPUs Ray reserves for each run, e.g. 1 or 0.5 (default 0: the runs use the CPU unless --device says otherwise)")
+    bt.set_defaults(func=cmd_batch)
 
     rg = sub.add_parser("rig", help="convert a Kalibr calibration into a rig YAML",
                         description="Read a Kalibr camchain.yaml or camchain-imucam.yaml (pinhole-radtan, pinhole-equi) and write our rig YAML: "
@@ -204,10 +228,34 @@ def cmd_run(args) -> int:
         rig_from_kalibr(args.from_kalibr)  # refuses a file that is not a camchain
         rig = args.from_kalibr  # run_sequence reads it again, and names it in its errors
     metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance, every=args.every,
-                           poses=getattr(args, "poses", None), refine_poses=getattr(args, "refine_poses", False))
+                           poses=getattr(args, "poses", None), refine_poses=getattr(args, "refine_poses", False), segment=args.segment, waymo_cameras=args.waymo_cameras)
     print(f"{args.command} finished; outputs in {args.out}")
     _print_metrics(metrics)
     return 0
+
+
+def cmd_batch(args) -> int:
+    from .system.batch import RayMissing, RunOptions, run_batch
+
+    shared = argparse.ArgumentParser(add_help=False)
+    _add_sequence_arguments(shared)
+    defaults = vars(shared.parse_args(["--data", "-", "--out", "-"]))  # run's defaults; argparse names --kitti-cameras kitti_cameras
+    options = RunOptions(tuple((f"--{dest.replace('_', '-')}", getattr(args, dest)) for dest, default in defaults.items()
+                               if dest not in ("data", "out") and getattr(args, dest) != default), args.device)  # what differs goes to every run
+    try:
+        results = run_batch([*args.inputs, *args.data], args.out, options, address=args.address, cpus_per_run=args.cpus_per_run, gpus_per_run=args.gpus_per_run,
+                            echo=lambda line: print(line, flush=True))
+    except RayMissing as e:
+        print(f"mcgs-slam batch: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mcgs-slam batch: interrupted (run the same command again: finished sequences are skipped)", file=sys.stderr)
+        return 130
+    failed = [r["name"] for r in results if r["status"] == "failed"]
+    ran = sum(r["status"] == "ok" for r in results)
+    print(f"batch finished: {ran} run, {len(results) - ran - len(failed)} skipped, {len(failed)} failed{' (' + ', '.join(failed) + ')' if failed else ''}; "
+          f"summary in {args.out}/summary.md")
+    return 1 if failed else 0
 
 
 def cmd_eval(args) -> int:

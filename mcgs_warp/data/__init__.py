@@ -1,5 +1,5 @@
-"""Datasets: our folder format, EuRoC (MAV), KITTI odometry, TUM RGB-D, ROS bags, and the
-built-in synthetic sequence.
+"""Datasets: our folder format, EuRoC (MAV), KITTI odometry, TUM RGB-D, Waymo Open Dataset v2,
+nuScenes, ROS bags, and the built-in synthetic sequence.
 
 :func:`open_sequence` recognizes the folder layout and returns a :class:`Sequence`.
 """
@@ -11,22 +11,29 @@ from pathlib import Path
 from ..errors import InputError
 from .euroc import EurocSequence, is_euroc
 from .kitti import KittiSequence, is_kitti
+from .nuscenes import NuScenesSequence, is_nuscenes
 from .sequence import Frame, FolderSequence, FolderWriter, Sequence
 from .trajectory import Trajectory, read_tum, write_tum
 from .tum import TumSequence
+from .waymo import WaymoSequence, is_waymo
 
 
-def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: float | None = None, rig_source=None) -> Sequence:
+def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: float | None = None, rig_source=None, segment: str | None = None, waymo_cameras: str = "front3") -> Sequence:
     """Open a sequence: a ROS 1 ``.bag`` or ROS 2 bag folder (needs ``rig``, whose cameras name
     their ``topic``), or a folder: ours (``rig.yaml`` + ``timestamps.txt``), EuRoC (``mav0/`` or
     ``cam0/data.csv``), KITTI odometry (``calib.txt`` + ``image_0/``; the grey pair, or
-    ``kitti_cameras="colour"``) or TUM RGB-D (``rgb.txt``). A ``rig`` (:class:`Rig`) given for a
-    folder replaces its calibration: same number of cameras and resolutions. ``sync_tolerance``
-    (s) pairs a bag's cameras; ``rig_source`` names the rig's file in errors."""
+    ``kitti_cameras="colour"``), TUM RGB-D (``rgb.txt``), Waymo Open Dataset v2 (``camera_image/``
+    + ``camera_calibration/``; ``waymo_cameras`` ``"front3"`` or ``"all"``) or nuScenes
+    (``v1.0-*/`` tables). ``segment`` picks a Waymo segment or a nuScenes scene (an error for any
+    other layout). A ``rig`` (:class:`Rig`) given for a folder replaces its calibration: same
+    number of cameras and resolutions. ``sync_tolerance`` (s) pairs a bag's cameras;
+    ``rig_source`` names the rig's file in errors."""
     from .rosbag import BagSequence, bag_paths
     from .sequence import MAX_SYNC_DT
 
     path = Path(path)
+    if segment is not None and not (path.is_dir() and (is_waymo(path) or is_nuscenes(path))):
+        raise InputError(None, "--segment", f"picks a Waymo Open Dataset segment or a nuScenes scene; {path} is neither (camera_image/ + camera_calibration/, or v1.0-*/)")
     if bag_paths(path) is not None:
         if rig is None:
             raise InputError(path, None, "a ROS bag carries no calibration: pass --rig RIG.yaml (each camera with its topic:) or --from-kalibr camchain.yaml")
@@ -46,7 +53,7 @@ def open_sequence(path, rig=None, kitti_cameras: str = "grey", sync_tolerance: f
         seq = EurocSequence(path, rig)
         _check_body(own, rig, rig_source, seq.groundtruth is not None)
         return seq
-    seq = _open_folder(path, kitti_cameras)  # the folder's own rig: what a replacement must match
+    seq = _open_folder(path, kitti_cameras, segment, waymo_cameras)  # the folder's own rig: what a replacement must match
     if rig is not None:
         _check_replacement(seq.rig.cameras, rig, rig_source)
         _check_body(seq.rig.cameras, rig, rig_source, seq.groundtruth is not None)
@@ -81,19 +88,23 @@ def _check_body(own: list, rig, source, has_groundtruth: bool) -> None:
              "the ground truth is of the folder's body, so the ATE compares different frames (a camera-only Kalibr camchain makes cam0 the body; use camchain-imucam.yaml)")
 
 
-def _open_folder(path: Path, kitti_cameras: str) -> Sequence:
+def _open_folder(path: Path, kitti_cameras: str, segment: str | None = None, waymo_cameras: str = "front3") -> Sequence:
     if (path / "timestamps.txt").is_file() or ((path / "rig.yaml").is_file() and not (path / "rgb.txt").is_file()):  # a TUM folder may hold its rig.yaml
         return FolderSequence(path)
     if is_euroc(path):
         return EurocSequence(path)
     if is_kitti(path):
         return KittiSequence(path, kitti_cameras)
+    if is_waymo(path):
+        return WaymoSequence(path, segment, waymo_cameras)
+    if is_nuscenes(path):
+        return NuScenesSequence(path, segment)
     if (path / "rgb.txt").is_file():
         return TumSequence(path)
     if not any(path.iterdir()):
         raise InputError(path, None, "data folder is empty")
     raise InputError(
-        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC), calib.txt + image_0/ (KITTI odometry), rgb.txt (TUM RGB-D) or a ROS 2 bag"
+        path, None, "unrecognized data folder: expected rig.yaml + timestamps.txt (ours), mav0/ (EuRoC), calib.txt + image_0/ (KITTI odometry), rgb.txt (TUM RGB-D), camera_image/ + camera_calibration/ (Waymo v2), v1.0-*/ (nuScenes) or a ROS 2 bag"
     )
 
 

@@ -17,7 +17,7 @@ from .slam import SLAM, Progress
 CHECKPOINT = "checkpoint.npz"
 
 
-def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None, rig=None, sync_tolerance: float | None = None, every: int = 1, poses=None, refine_poses: bool = False) -> dict:
+def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None, rig=None, sync_tolerance: float | None = None, every: int = 1, poses=None, refine_poses: bool = False, segment: str | None = None, waymo_cameras: str = "front3") -> dict:
     """Run SLAM on the sequence ``data`` (a folder or a ROS bag) and write everything to
     ``out``; returns the metrics. ``rig`` (a :class:`Rig`, or the path of a rig YAML or of a
     Kalibr camchain) is a bag's calibration, or replaces a folder's. The online state is
@@ -25,7 +25,8 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
     interrupted run from it. ``every`` keeps every N-th frame (:class:`EveryNth`). ``poses``
     (a TUM file of the rig body's poses, a :class:`Trajectory`, or ``"groundtruth"``) maps from
     given poses instead of tracking (:class:`~mcgs_warp.system.posed_mapping.PosedMapping`);
-    ``refine_poses`` lets the refinement adjust them."""
+    ``refine_poses`` lets the refinement adjust them. ``segment`` and ``waymo_cameras`` go to
+    :func:`open_sequence` (a Waymo segment or nuScenes scene; Waymo's camera set)."""
     t0 = time.perf_counter()
     cfg = config if isinstance(config, RunConfig) else load_run_config(config)
     if jdsa is not None:
@@ -38,7 +39,7 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
     if rig is not None and not isinstance(rig, Rig):
         rig_source = Path(rig)
         rig = load_any_rig(rig_source)
-    seq = open_sequence(data, rig=rig, kitti_cameras=kitti_cameras, sync_tolerance=sync_tolerance, rig_source=rig_source)
+    seq = open_sequence(data, rig=rig, kitti_cameras=kitti_cameras, sync_tolerance=sync_tolerance, rig_source=rig_source, segment=segment, waymo_cameras=waymo_cameras)
     if cameras is not None:
         seq = CameraSubset(seq, cameras)
     if every != 1:
