@@ -1,6 +1,7 @@
 """Mapping benchmark: iterations per second and memory for 3 cameras x 10 keyframes.
 
-Builds a map from the built-in synthetic sequence (320x240, keyframes every 2nd
+Builds a map from the built-in synthetic sequence (320x240, or ``--width`` px wide with the
+rig's cameras resampled; keyframes every 2nd
 frame, Gaussians from the true depth every 4th pixel), then times mapping
 iterations (one keyframe = 3 views per iteration), split into render, loss
 (device kernels: exposure, L1 + SSIM, depth, normal, and their gradients), backward
@@ -10,7 +11,7 @@ forward + backward time for the same views and Gaussians (colour gradient alread
 device; timed right after each iteration, so that both see the same machine load) and the
 ratio (what the mapping stage adds on top of splatting; target <= 1.5).
 
-    python benchmarks/bench_mapping.py [--device cuda:0] [--keyframes 10]
+    python benchmarks/bench_mapping.py [--device cuda:0] [--keyframes 10] [--width 640]
 """
 
 from __future__ import annotations
@@ -37,12 +38,19 @@ def main():
     parser.add_argument("--device", default=None)
     parser.add_argument("--keyframes", type=int, default=10)
     parser.add_argument("--iterations", type=int, default=30)
+    parser.add_argument("--width", type=int, default=320, help="image width, px (the rig's 320x240 cameras resampled; 640: a KITTI-sized mapping problem)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     wp.set_device(args.device or wp.get_preferred_device())
     with tempfile.TemporaryDirectory() as tmp:
-        seq = generate(Path(tmp) / "seq", n_cameras=3, n_frames=2 * args.keyframes, seed=0, progress=False)
+        from mcgs_warp.data.resample import resampled_camera
+        from mcgs_warp.data.synthetic import synthetic_rig
+        from mcgs_warp.rig import Rig
+
+        rig = synthetic_rig(3)
+        rig = Rig([resampled_camera(c, args.width, round(c.height * args.width / c.width)) for c in rig.cameras])
+        seq = generate(Path(tmp) / "seq", n_frames=2 * args.keyframes, seed=0, progress=False, rig=rig)
         frames = list(range(0, 2 * args.keyframes, 2))
         P = Problem(seq, frames, cross_view=False)
         m = Mapper(P.buf, config=MappingConfig(densify_every=0))
@@ -79,7 +87,8 @@ def main():
     n = len(m.map)
     param_mb = n * (3 + 4 + 3 + 1 + 3) * 4 / 2**20
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"device: {wp.get_device()}; {args.keyframes} keyframes x 3 cameras at 320x240; {n} Gaussians")
+    spec = m.buf.rig.cameras[0]
+    print(f"device: {wp.get_device()}; {args.keyframes} keyframes x 3 cameras at {spec.width}x{spec.height}; {n} Gaussians")
     print(f"median of {args.iterations} iterations (one keyframe, 3 views each), seconds")
     print(f"{'render':>9} {'loss':>9} {'backward':>9} {'optimizer':>9} {'total':>9} {'it/s':>7} {'renderer f+b':>13} {'ratio':>6} {'ratio/it':>9}")
     print(f"{r[0]:>9.4f} {r[1]:>9.4f} {r[2]:>9.4f} {r[3]:>9.4f} {total:>9.4f} {1 / total:>7.2f} {renderer:>13.4f} {total / renderer:>6.2f} {per_iteration:>9.2f}")

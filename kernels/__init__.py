@@ -12,7 +12,7 @@ Modules:
     raycast     ray casting of procedural scenes (synthetic sequences)
     tiles       tile binning with radix-sorted (tile, depth) keys
     blend       front-to-back alpha blending and its adjoint
-    background  a background at infinity (sky) by world direction, composited through the transmittance, and its adjoint
+    background  a background at infinity (sky) by world direction (harmonics + cube map), composited through the transmittance, and its adjoint
     splat       Python stages: project, bin_tiles, blend, their backwards, render, render_backward
     ba          MCBA residuals, Jacobians and the sparse Schur reduction (paper eq. 6-10)
     sweep       plane/sphere-sweep stereo for any camera model, ZNCC costs, left-right check

@@ -140,6 +140,30 @@ def isotropy_loss_kernel(
     grad[i] = grad[i] + weight * wp.cw_mul(g, s)  # chain rule through exp
 
 
+SKY_EPS = wp.constant(0.02)  # the sky term's floor on transmittance (1 - alpha)
+
+
+@wp.kernel
+def sky_alpha_loss_kernel(
+    alpha: wp.array(dtype=float, ndim=3),  # [C,H,W] rendered
+    sky: wp.array(dtype=float, ndim=3),  # [C,H,W] weight per pixel: 1 / (camera's pixels) on sky, else 0
+    weight: float,
+    loss: wp.array(dtype=float),  # [1] accumulated
+    grad_alpha: wp.array(dtype=float, ndim=3),  # [C,H,W] accumulated
+):
+    """Sky term: ``weight * sum_pixels sky * -log(1 - alpha)``, the binary cross-entropy of the
+    rendered alpha against "no Gaussian here" (as outdoor splatting systems' sky-mask loss).
+    Unlike a linear term its gradient grows as the splats saturate the pixel (where
+    ``d alpha / d opacity`` vanishes); ``1 - alpha`` is floored at ``SKY_EPS``, below which the
+    gradient stays at ``weight * sky / SKY_EPS``."""
+    c, y, x = wp.tid()
+    w = sky[c, y, x]
+    if w > 0.0:
+        t = wp.max(1.0 - alpha[c, y, x], SKY_EPS)
+        wp.atomic_add(loss, 0, -weight * w * wp.log(t))
+        grad_alpha[c, y, x] = grad_alpha[c, y, x] + weight * w / t
+
+
 @wp.kernel
 def keyframe_viewmats_kernel(
     poses: wp.array(dtype=wp.transform),  # [K] T_w_b

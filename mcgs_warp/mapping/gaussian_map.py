@@ -37,7 +37,9 @@ def logit(p):
 class DensifyReport:
     cloned: int = 0
     split: int = 0
-    pruned: int = 0
+    pruned: int = 0  # all pruned Gaussians, of which
+    floaters: int = 0  # ... in front of the keyframes' depth (Mapper.view_statistics)
+    oversized_on_screen: int = 0  # ... wider than the screen budget in some keyframe view
 
 
 class GaussianMap:
@@ -117,11 +119,11 @@ class GaussianMap:
         self.set_numpy({k: v[mask] for k, v in d.items()}, np.nonzero(mask)[0])
         return int((~mask).sum())
 
-    def densify_and_prune(self, grad_threshold: float, split_scale: float, prune_opacity: float, prune_scale: float, max_gaussians: int, rng) -> tuple[DensifyReport, np.ndarray]:
+    def densify_and_prune(self, grad_threshold: float, split_scale: float, prune_opacity: float, prune_scale: float, max_gaussians: int, rng, drop=None) -> tuple[DensifyReport, np.ndarray]:
         """Adaptive density control from the accumulated statistics, which then restart.
 
-        Prune Gaussians with opacity below ``prune_opacity`` or largest scale above
-        ``prune_scale`` (m). Of the others, those whose mean ``|dL/d mean2d|`` per view
+        Prune Gaussians with opacity below ``prune_opacity``, largest scale above
+        ``prune_scale`` (m) or ``drop`` ([N] bool: what the views rule out, e.g. floaters). Of the others, those whose mean ``|dL/d mean2d|`` per view
         exceeds ``grad_threshold`` (at most ``max_gaussians`` in all) are cloned when
         their largest scale is at most ``split_scale`` (m), else split in two children
         sampled from the Gaussian (``rng``: NumPy generator) with scales / 1.6.
@@ -136,6 +138,8 @@ class GaussianMap:
         scale = np.exp(d["log_scales"]).max(1)
         opacity = 1 / (1 + np.exp(-d["opacity_logits"]))
         keep = (opacity >= prune_opacity) & (scale <= prune_scale)
+        if drop is not None:
+            keep &= ~np.asarray(drop, bool)
         report.pruned = int((~keep).sum())
         hot = keep & (mean_grad > grad_threshold)
         room = max(max_gaussians - int(keep.sum()), 0)
@@ -164,17 +168,24 @@ class GaussianMap:
         return report, np.concatenate(index)
 
     # ----------------------------------------------------------------------------------
-    def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0) -> int:
+    def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0, fill: bool = False, fill_opacity: float = INITIAL_OPACITY) -> int:
         """Back-project every ``stride``-th pixel with depth of each camera (``mask[c]``
         [H,W] bool limits to unobserved pixels) into new Gaussians anchored to ``anchor``,
-        sized by their footprint (module docstring)."""
+        sized by their footprint (module docstring). With ``fill``, the masked pixels
+        without a depth target take the depth their neighbourhood has (:func:`fill_depth`):
+        every pixel the mask allows gets a Gaussian, left to the photometric loss; those
+        start at ``fill_opacity`` (faint: a guessed depth must not hide what other views
+        measured until the colour loss wants it)."""
         from ..ba.edges import unproject_pixels
 
-        pts, cols, sizes = [], [], []
+        pts, cols, sizes, guessed = [], [], [], []
         for c, spec in enumerate(rig.cameras):
             d = depths[c]
             if d is None:
                 continue
+            measured = (d > 0) & (d < max_depth)
+            if fill:
+                d = fill_depth(np.where(measured, d, 0.0))
             o = stride // 2
             v, u = np.mgrid[o : spec.height : stride, o : spec.width : stride]
             z = d[v, u]
@@ -190,12 +201,14 @@ class GaussianMap:
             pts.append(X_c[has_ray] @ T[:3, :3].T + T[:3, 3])
             cols.append(images[c][v[ok], u[ok]][has_ray])
             sizes.append(stride * np.linalg.norm(X_c[has_ray], axis=1) / spec.pixels_per_radian)
+            guessed.append(~measured[v[ok], u[ok]][has_ray])
         if not pts:
             return 0
         pts = np.concatenate(pts)
         cols = np.concatenate(cols)
         scale = np.clip(0.5 * np.concatenate(sizes), 1e-4, MAX_INITIAL_SCALE)
-        return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor)
+        opacity = np.where(np.concatenate(guessed), fill_opacity, INITIAL_OPACITY)
+        return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor, opacity_logits=logit(opacity))
 
     def anchors_device(self) -> wp.array:
         """The anchors on the device (made on first use after the map changed)."""
@@ -239,3 +252,29 @@ class GaussianMap:
         for k, (A, B) in enumerate(zip(old_T_w_b, new_T_w_b)):
             if not np.allclose(A, B, atol=1e-9):
                 self.move_anchored(k, B @ np.linalg.inv(A), scale)
+
+
+def fill_depth(depth: np.ndarray) -> np.ndarray:
+    """``depth`` [H,W] (m, 0 = none) with its holes filled from their neighbourhood: a
+    push-pull pyramid of inverse depth (each hole takes the mean inverse depth of the
+    valid pixels in the smallest 2^l block around it that has any, so far stays far and
+    a hole between near and far takes their harmonic mean). All zeros stay zeros."""
+    import cv2
+
+    d = np.asarray(depth, np.float32)
+    valid = d > 0
+    if valid.all() or not valid.any():
+        return d
+    levels = [(np.where(valid, 1.0 / np.maximum(d, 1e-6), 0.0).astype(np.float32), valid.astype(np.float32))]
+    while max(levels[-1][1].shape) > 1 and levels[-1][1].min() == 0:
+        s, w = levels[-1]
+        h2, w2 = (s.shape[0] + 1) // 2, (s.shape[1] + 1) // 2
+        pad = ((0, 2 * h2 - s.shape[0]), (0, 2 * w2 - s.shape[1]))
+        s, w = np.pad(s, pad), np.pad(w, pad)
+        levels.append((s.reshape(h2, 2, w2, 2).sum((1, 3)), w.reshape(h2, 2, w2, 2).sum((1, 3))))
+    s, w = levels[-1]
+    inv = s / np.maximum(w, 1e-12)
+    for s, w in reversed(levels[:-1]):
+        up = cv2.resize(inv, (2 * inv.shape[1], 2 * inv.shape[0]), interpolation=cv2.INTER_NEAREST)[: s.shape[0], : s.shape[1]]
+        inv = np.where(w > 0, s / np.maximum(w, 1e-12), up)
+    return np.where(valid, d, 1.0 / np.maximum(inv, 1e-6)).astype(np.float32)

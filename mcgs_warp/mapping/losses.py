@@ -55,7 +55,8 @@ class KeyframeTargets:
     var: wp.array  # [C,H,W] vec3, SSIM local variance of the image
     normals: wp.array  # [C,H,W] vec3, unit normal of the target depth per quad, 0 = none
     inv_depth_count: wp.array  # [C] float, 1 / #pixels with a target depth (0: none)
-    sources: tuple  # (images, depths) host objects it was made from
+    sources: tuple  # (images, depths, sky) host objects it was made from
+    sky: wp.array | None = None  # [C,H,W] float, 1 / (camera's pixels) on its sky, 0 elsewhere; None: no sky
 
 
 @dataclass
@@ -141,15 +142,22 @@ class MappingLoss:
         run_row_bands(self.device, self.H, band)
 
     # ----------------------------------------------------------------------------------
-    def make_targets(self, images, depths) -> KeyframeTargets:
+    def make_targets(self, images, depths, sky=None) -> KeyframeTargets:
         """Upload one keyframe's targets: ``images[c]`` [h_c,w_c,3] in [0,1], ``depths[c]``
         [h_c,w_c] m (0 or ``None`` = none) per camera; precompute the target-only SSIM
-        statistics and normals."""
+        statistics and normals. ``sky[c]`` ([h_c,w_c] bool or ``None``): pixels that get no
+        depth target and the sky term (:mod:`mcgs_warp.mapping.sky`)."""
         dev, C, H, W = self.device, self.C, self.H, self.W
         depths = list(depths) if depths is not None else [None] * C
         img = wp.array(pad_images(images, C, H, W, 3), dtype=wp.vec3, device=dev)
         dep_np = pad_images(depths, C, H, W)
         dep_np[self._no_ray] = 0.0
+        sky_arr = None
+        if sky is not None and any(m is not None and np.any(m) for m in sky):
+            sky_np = pad_images([None if m is None else np.asarray(m, np.float32) for m in sky], C, H, W)
+            dep_np[sky_np > 0] = 0.0
+            sky_np *= np.array([1.0 / (img_c.shape[0] * img_c.shape[1]) for img_c in images], np.float32)[:, None, None]
+            sky_arr = wp.array(sky_np, dtype=float, device=dev)
         dep = wp.array(dep_np, dtype=float, device=dev)
         counts = (dep_np > 0).sum(axis=(1, 2))
         inv_count = np.where(counts > 0, 1.0 / np.maximum(counts, 1), 0.0).astype(np.float32)
@@ -160,7 +168,8 @@ class MappingLoss:
             wp.zeros(self.shape, dtype=wp.vec3, device=dev),
             wp.zeros(self.shape, dtype=wp.vec3, device=dev),
             wp.array(inv_count, dtype=float, device=dev),
-            (images, depths),
+            (images, depths, sky),
+            sky_arr,
         )
         h_t, h_tt = self._h[0], self._h[1]
         self._rows_launch(ssim_target_rows_kernel, [img, self.cameras, self.window], [h_t, h_tt])
@@ -168,13 +177,12 @@ class MappingLoss:
         self._rows_launch(target_normals_kernel, [dep, self.rays, self.cameras], [t.normals])
         return t
 
-    def targets(self, key, images, depths) -> KeyframeTargets:
-        """The cached targets of keyframe ``key``, made (or remade, when ``images`` or
-        ``depths`` are other objects than last time) by :meth:`make_targets`."""
+    def targets(self, key, images, depths, sky=None) -> KeyframeTargets:
+        """The cached targets of keyframe ``key``, made (or remade, when ``images``,
+        ``depths`` or ``sky`` are other objects than last time) by :meth:`make_targets`."""
         t = self._cache.get(key)
-        if t is None or not (_same(t.sources[0], images) and _same(t.sources[1], depths)):
-            t = self.make_targets(images, depths)
-            t.sources = (images, depths)
+        if t is None or not (_same(t.sources[0], images) and _same(t.sources[1], depths) and _same(t.sources[2], sky)):
+            t = self.make_targets(images, depths, sky)
         self._cache[key] = t
         self._cache.move_to_end(key)
         while len(self._cache) > self.cache_size:

@@ -14,8 +14,13 @@ Roles: :class:`~.gaussian_map.GaussianMap` is the map (insert, densify, prune),
 iteration stays on the device: its only host reads are the per-camera loss values and
 a finiteness flag (to reject a step with NaN/Inf before anything changes).
 
-Densify and prune every ``densify_every`` iterations. New keyframes add Gaussians where
-the current map leaves the image uncovered (rendered alpha below ``new_alpha``).
+Densify and prune every ``densify_every`` iterations: the map's gradient rules
+(:meth:`GaussianMap.densify_and_prune`) plus the view rules of :meth:`Mapper.view_statistics`
+(floaters in front of the keyframes' depth, an on-screen size budget). New keyframes add
+Gaussians where the current map leaves the image uncovered (rendered alpha below
+``new_alpha``), also where no depth was measured (faint, at their neighbourhood's depth:
+``insert_fill``), and, with ``sky``, never on the view's sky (:mod:`.sky`), whose rendered
+alpha a cross-entropy term pushes to zero so the background shows there.
 """
 
 from __future__ import annotations
@@ -53,17 +58,27 @@ class MappingConfig:
     lr_pose: float = 2e-4  # rad and m per step (Adam)
     lr_background: float = 0.02  # per step: the background's spherical-harmonic coefficients (colour units)
     background: bool = True  # light the splats let through comes from a background at infinity (sky), colour by world direction (kernels/background.py); False: black
+    background_cube: int = 32  # texels per face of the background's environment cube map on top of its harmonics (0: harmonics alone)
     lambda_ssim: float = 0.2
     lambda_depth: float = 1.0  # per m (0.2 before; seed 0 RGB only depth L1 0.119 -> 0.106 m, exact 0.045 -> 0.031 m and 30.16 -> 30.50 dB; held-out seed 1 RGB only 0.114 -> 0.100 m)
     lambda_scale: float = 1.0  # per m (isotropy, eq. 11)
     lambda_normal: float = 0.05  # normal consistency with the depth target's normals (eq. 11)
+    sky: bool = False  # segment each keyframe view's sky (mapping/sky.py): no Gaussian is seeded there, it gets no depth target, and the rendered alpha there is penalized so the background shows the sky
+    lambda_sky: float = 1.0  # weight of the sky term: binary cross-entropy of the rendered alpha against 0 on the sky, -log(1 - alpha), averaged over a camera's pixels (kernels/mapping.py)
     insert_stride: int = 4  # px between new Gaussians
+    insert_fill: bool = True  # also seed Gaussians where no depth target is (uncovered, not sky), at the depth of their neighbourhood (GaussianMap.insert_from_depth): the view is covered even where nothing measured depth
+    fill_opacity: float = 0.1  # initial opacity of the Gaussians seeded at a guessed (filled) depth
+    insert_max_depth: float = 100.0  # m: depth targets beyond this seed no Gaussian (the background stands for the far field)
     new_alpha: float = 0.5  # add Gaussians where rendered alpha is below this
     densify_every: int = 100
     densify_grad: float = 1e-5  # mean |dL/d mean2d| per view (loss per px) that triggers clone/split
     split_scale: float = 0.05  # m: larger Gaussians are split, smaller ones cloned
     prune_opacity: float = 0.01
     prune_scale: float = 2.0  # m
+    prune_screen: float = 0.0  # prune Gaussians whose 3-sigma radius exceeds this share of the image width in any keyframe view (3DGS's screen-size rule, as a share so it survives resolution; 0: off)
+    prune_floaters: bool = True  # prune Gaussians that keyframes see in front of their depth target (by more than floater_tolerance) more often than at it: floaters
+    floater_tolerance: float = 0.2  # relative depth
+    opacity_reset_every: int = 0  # iterations: clamp every opacity to 2 x prune_opacity (3DGS's opacity reset: what the views need recovers, floaters stay transparent and are pruned; 0: off)
     max_gaussians: int = 400_000
     target_cache: int = 32  # keyframes whose loss targets stay on the device (LRU)
 
@@ -92,16 +107,19 @@ class Mapper:
         dev = buffer.device
         self.optimize_exposure = False
         self.optimize_poses = False
+        self.sky: dict[int, list] = {}  # keyframe -> per camera [H,W] bool sky mask (mapping/sky.py)
+        self.sky_depth_veto = False  # True with exact sensor depth: a region it measures is not sky
         self.fixed_poses: set[int] = {0}
         self.adam = self._new_adam()
         self.loss = MappingLoss(self.cams, dev, self.cfg.target_cache, rays=buffer.full_rays)
-        self.background = wp.zeros(bg.N_COEFFS, dtype=wp.vec3, device=dev)  # RGB per harmonic (kernels/background.py)
+        self._background_image = None
+        self.background = wp.zeros(bg.n_coeffs(self.cfg.background_cube), dtype=wp.vec3, device=dev)  # RGB per harmonic, then cube texels (kernels/background.py)
         # xi_c = Ad(T_c_b) xi_b: camera-pose gradients to the body, transposed adjoints per camera
         adj = np.stack([adjoint(np.linalg.inv(spec.T_b_c)).T for spec in buffer.rig.cameras]).astype(np.float32)
         self._adjoints_T = wp.array(adj, dtype=mat66, device=dev)
         self._pose_grad = wp.zeros(6, dtype=float, device=dev)  # dL/d xi_b
         self._pose_step = wp.zeros(6, dtype=float, device=dev)  # the increment Adam writes
-        self._scale_loss = wp.zeros(1, dtype=float, device=dev)
+        self._regularizers = wp.zeros(1, dtype=float, device=dev)  # the scale and sky terms of the step (summed on the device)
         self._nonfinite = wp.zeros(1, dtype=wp.int32, device=dev)
         self.iteration = 0
         self.history: list[StepResult] = []
@@ -128,7 +146,9 @@ class Mapper:
         cameras are the rig's at the buffer's size) with the background behind the splats."""
         if not self.cfg.background:
             return out.color
-        return bg.composite(out.color, out.alpha, self.loss.rays, views.viewmats, views.cameras, self.background)
+        if self._background_image is None or self._background_image.shape != out.color.shape:
+            self._background_image = wp.empty_like(out.color)  # B(d) per pixel of the last composite, for its backward pass
+        return bg.composite(out.color, out.alpha, self.loss.rays, views.viewmats, views.cameras, self.background, background=self._background_image)
 
     def render(self, views: Views):
         """``(colour, render)``: :func:`render` of ``views`` and its colour with the background."""
@@ -138,15 +158,20 @@ class Mapper:
     def add_keyframe(self, k: int, depths) -> int:
         """Register keyframe ``k`` of the buffer with full-resolution depth targets
         ``depths[c]`` [H,W] (m, 0 = none) and add Gaussians where the map is empty."""
+        from .sky import sky_mask
+
         self.buf.targets[k] = list(depths)
         images = self.buf.images[k]
-        mask = None
+        if self.cfg.sky:
+            self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None) for c in range(len(self.cams))]
+        free = [np.ones((s.height, s.width), bool) if not self.cfg.sky else ~self.sky[k][c] for c, s in enumerate(self.buf.rig.cameras)]
+        mask = free
         if len(self.map):
             out = render(self.map.gaussians, self.views(k))
             alpha = out.alpha.numpy()
-            mask = [alpha[c, : s.height, : s.width] < self.cfg.new_alpha for c, s in enumerate(self.buf.rig.cameras)]
+            mask = [(alpha[c, : s.height, : s.width] < self.cfg.new_alpha) & free[c] for c, s in enumerate(self.buf.rig.cameras)]
         before = len(self.map)
-        added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask)
+        added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity)
         self._remap_optimizer(np.concatenate([np.arange(before), -np.ones(added, int)]))
         return added
 
@@ -169,7 +194,7 @@ class Mapper:
         views = self.views(k)
         colour, out = self.render(views)
         t1 = time.perf_counter()
-        targets = self.loss.targets(k, buf.images[k], buf.targets[k])
+        targets = self.loss.targets(k, buf.images[k], buf.targets[k], self.sky.get(k))
         res = self.loss(colour, out.depth, targets, buf.exposure[k], cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal)
         t2 = time.perf_counter()
         params = {"means": g.means, "log_scales": g.log_scales, "quats": g.quats, "opacity_logits": g.opacity_logits, "colors": g.colors}
@@ -177,21 +202,27 @@ class Mapper:
         step_pose = self.optimize_poses and k not in self.fixed_poses
         grads = None
         self._nonfinite.zero_()
-        self._scale_loss.zero_()
+        self._regularizers.zero_()
         grad_background = None
         if train_map or step_pose:
             grad_alpha = None
             if cfg.background:
-                grad_alpha, grad_background = bg.composite_backward(out.alpha, self.loss.rays, views.viewmats, views.cameras, self.background, res.grad_color)
+                grad_alpha, grad_background = bg.composite_backward(out.alpha, self.loss.rays, views.viewmats, views.cameras, self.background, res.grad_color, background=self._background_image)
+            if targets.sky is not None and cfg.lambda_sky > 0:
+                from ..kernels.mapping import sky_alpha_loss_kernel
+
+                if grad_alpha is None:
+                    grad_alpha = wp.zeros(out.alpha.shape, dtype=float, device=dev)
+                wp.launch(sky_alpha_loss_kernel, dim=out.alpha.shape, inputs=[out.alpha, targets.sky, float(cfg.lambda_sky)], outputs=[self._regularizers, grad_alpha], device=dev)
             grads = render_backward(g, views, out, grad_color=res.grad_color, grad_depth=res.grad_depth, grad_alpha=grad_alpha)
             if cfg.lambda_scale > 0 and len(self.map):
-                wp.launch(isotropy_loss_kernel, dim=len(self.map), inputs=[g.log_scales, cfg.lambda_scale / len(self.map)], outputs=[self._scale_loss, grads.log_scales], device=dev)
+                wp.launch(isotropy_loss_kernel, dim=len(self.map), inputs=[g.log_scales, cfg.lambda_scale / len(self.map)], outputs=[self._regularizers, grads.log_scales], device=dev)
             for values in [flat(getattr(grads, name)) for name in ("means", "quats", "log_scales", "opacity_logits", "colors", "pose")] + ([flat(grad_background)] if grad_background is not None else []):
                 if values.shape[0]:
                     wp.launch(count_nonfinite_kernel, dim=values.shape[0], inputs=[values], outputs=[self._nonfinite], device=dev)
         total, psnrs = res.values()
         if grads is not None:
-            total += float(self._scale_loss.numpy()[0])
+            total += float(self._regularizers.numpy()[0])
         t3 = time.perf_counter()
         if grads is not None and (not np.isfinite(total) or self._nonfinite.numpy()[0] > 0):
             # Numerical safety: a NaN/Inf loss or gradient never reaches the map or poses.
@@ -213,6 +244,8 @@ class Mapper:
         self.iteration += 1
         if cfg.densify_every and self.iteration % cfg.densify_every == 0:
             self.densify_and_prune()
+        if cfg.opacity_reset_every and self.iteration % cfg.opacity_reset_every == 0:
+            self.reset_opacity()
         t4 = time.perf_counter()
         for key, dt in (("render", t1 - t0), ("loss", t2 - t1), ("backward", t3 - t2), ("optimizer", t4 - t3)):
             self.seconds[key] += dt
@@ -245,6 +278,12 @@ class Mapper:
         out.update({f"adam.{k}": v for k, v in self.adam.state_arrays().items()})
         out["grad_accum"], out["grad_count"] = self.map.statistics()
         out["background"] = self.background.numpy().copy()
+        sky = sorted(self.sky)
+        out["sky_keyframes"] = np.array(sky, np.int64)
+        from .losses import pad_images
+
+        padded = [pad_images([np.asarray(m, np.float32) for m in self.sky[k]], len(self.cams), self.loss.H, self.loss.W) > 0 for k in sky]
+        out["sky"] = np.packbits(np.stack(padded)) if sky else np.zeros(0, np.uint8)  # [K,C,H,W] bits, padded to the largest camera
         out["history"] = np.array([(r.loss, r.psnr, r.keyframe) for r in self.history], np.float64).reshape(-1, 3)
         out["json"] = np.array(json.dumps({"iteration": self.iteration, "rng": self.rng.bit_generator.state, "rejected": self.rejected_steps, "registered": sorted(self.buf.targets)}))
         return out
@@ -258,6 +297,10 @@ class Mapper:
         self.map.set_statistics(a["grad_accum"], a["grad_count"])
         self.adam.load_state_arrays({k[5:]: a[k] for k in a if k.startswith("adam.")}, self.buf.device)
         self.background.assign(a["background"])
+        sky = [int(k) for k in a["sky_keyframes"]]
+        shape = (len(sky), len(self.cams), self.loss.H, self.loss.W)
+        bits = np.unpackbits(a["sky"])[: int(np.prod(shape))].reshape(shape).astype(bool) if sky else None
+        self.sky = {k: [bits[i, c, : s.height, : s.width].copy() for c, s in enumerate(self.buf.rig.cameras)] for i, k in enumerate(sky)}
         self.history = [StepResult(float(l_), float(p_), int(k_)) for l_, p_, k_ in a["history"]]
         meta = json.loads(str(a["json"]))
         self.iteration = meta["iteration"]
@@ -270,11 +313,68 @@ class Mapper:
     # ----------------------------------------------------------------------------------
     def densify_and_prune(self) -> DensifyReport:
         """Adaptive density control of the map (:meth:`GaussianMap.densify_and_prune`
-        with this mapper's settings); the optimizer state follows."""
+        with this mapper's settings, plus the view rules: screen size and floaters); the
+        optimizer state follows."""
         cfg = self.cfg
-        report, index = self.map.densify_and_prune(cfg.densify_grad, cfg.split_scale, cfg.prune_opacity, cfg.prune_scale, cfg.max_gaussians, self.rng)
+        drop, floaters, oversized = None, None, None
+        if (cfg.prune_screen > 0 or cfg.prune_floaters) and len(self.map) and self.buf.targets:
+            radius, front, agree = self.view_statistics()
+            oversized = radius > cfg.prune_screen * max(s.width for s in self.buf.rig.cameras) if cfg.prune_screen > 0 else np.zeros(len(self.map), bool)
+            floaters = (front >= 2) & (front > agree) if cfg.prune_floaters else np.zeros(len(self.map), bool)
+            drop = oversized | floaters
+        report, index = self.map.densify_and_prune(cfg.densify_grad, cfg.split_scale, cfg.prune_opacity, cfg.prune_scale, cfg.max_gaussians, self.rng, drop=drop)
+        if drop is not None:
+            report.floaters, report.oversized_on_screen = int(floaters.sum()), int(oversized.sum())
         self._remap_optimizer(index)
         return report
+
+    def reset_opacity(self) -> None:
+        """3DGS's opacity reset: every opacity clamped to at most 2 x ``prune_opacity``; the
+        colour loss brings back what the views need, the rest is pruned at the next densify."""
+        g = self.map.gaussians
+        if len(self.map) == 0:
+            return
+        cap = float(np.log(2 * self.cfg.prune_opacity / (1 - 2 * self.cfg.prune_opacity)))
+        logits = g.opacity_logits.numpy()
+        g.opacity_logits.assign(np.minimum(logits, cap).astype(np.float32))
+        if "opacity_logits" in self.adam.state:  # moments of the old opacities would undo the reset
+            m, v, t = self.adam.state["opacity_logits"]
+            m.zero_()
+            v.zero_()
+
+    def view_statistics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per Gaussian over every registered keyframe view that sees it (projected centre
+        inside the image): its largest 3-sigma screen radius (px), and how many views see it in
+        front of their depth target (nearer than ``1 - floater_tolerance`` times it) and at it
+        (within the tolerance). Views without a target at its pixel do not vote."""
+        from ..kernels import project
+
+        n, tol = len(self.map), self.cfg.floater_tolerance
+        radius, front, agree = np.zeros(n), np.zeros(n, int), np.zeros(n, int)
+        for k in sorted(self.buf.targets):
+            proj = project(self.map.gaussians, self.views(k))
+            uv, z, conic, vis = proj.mean2d.numpy(), proj.depth.numpy(), proj.conic.numpy(), proj.visible.numpy()
+            for c, spec in enumerate(self.buf.rig.cameras):
+                sl = slice(c * n, (c + 1) * n)
+                u, v = np.floor(uv[sl, 0]).astype(np.int64), np.floor(uv[sl, 1]).astype(np.int64)
+                seen = (vis[sl] > 0) & (u >= 0) & (u < spec.width) & (v >= 0) & (v < spec.height)
+                a, b, cc = conic[sl, 0], conic[sl, 1], conic[sl, 2]
+                # the largest eigenvalue of the 2D covariance is 1 / the smallest of the conic
+                low = 0.5 * (a + cc) - np.sqrt(np.maximum(0.25 * (a - cc) ** 2 + b * b, 0.0))
+                r = 3.0 * np.sqrt(1.0 / np.maximum(low, 1e-12))
+                radius = np.where(seen, np.maximum(radius, r), radius)
+                target = self.buf.targets[k][c]
+                if target is None:
+                    continue
+                d = np.zeros(n)
+                d[seen] = np.asarray(target)[v[seen], u[seen]]
+                sky = self.sky.get(k)
+                if sky is not None:
+                    d[seen] = np.where(sky[c][v[seen], u[seen]], 0.0, d[seen])
+                has = seen & (d > 0)
+                front += has & (z[sl] < (1 - tol) * d)
+                agree += has & (np.abs(z[sl] - d) <= tol * d)
+        return radius, front, agree
 
     def optimize(self, iterations: int, keyframes=None, progress=None) -> list[StepResult]:
         keys = sorted(self.buf.targets) if keyframes is None else list(keyframes)

@@ -33,6 +33,14 @@ MINIMUMS = {
     ("tracking", "flow_rounds"): (1, False, "each keyframe needs one MCBA round"),
     ("tracking", "huber_px"): (0.0, True, "0 would give every residual zero weight"),
     ("mapping", "insert_stride"): (1, False, "new Gaussians every insert_stride-th pixel"),
+    ("mapping", "fill_opacity"): (0.0, True, "an opacity of 0 is a logit of minus infinity"),
+    ("mapping", "background_cube"): (0, False, "texels per cube face"),
+}
+
+#: largest allowed values: (section, key) -> (maximum, strict, what the key needs)
+MAXIMUMS = {
+    ("mapping", "fill_opacity"): (1.0, True, "an opacity of 1 is a logit of infinity"),
+    ("mapping", "prune_screen"): (1.0, False, "a share of the image width"),
 }
 
 
@@ -72,7 +80,7 @@ class RefinementConfig:
     global_ba_radius: int = 6  # keyframes: its edges link overlapping views up to this far apart (longer baselines than online, so far depth is measured), plus confirmed loop edges
     photo_depth_radius: int = 3  # keyframes: after global BA each estimated depth target is checked against the same camera this many keyframes either side and the rig's overlapping cameras (PatchMatch-style propagation; 0: off; never for exact sensor depth; runs with global BA, so global_ba_iterations 0 skips it too)
     photo_depth_min_views: int = 2  # after that pass a target pixel is kept only where at least this many of the same views' targets put the point within 5 % of it (geometric consistency, as multi-view stereo fusion; 0: keep all)
-    iterations: int = 180  # joint refinement iterations (Adam steps) of map, poses and exposures (120 until 2026-11-27: seed 0 RGB only depth L1 0.106 -> 0.099 m, 28.94 -> 29.43 dB; held-out seed 1 0.100 -> 0.095 m; the demo 30.5 -> 30.8 dB)
+    iterations: int = 360  # joint refinement iterations (Adam steps) of map, poses and exposures (120 until 2026-11-27: seed 0 RGB only depth L1 0.106 -> 0.099 m, 28.94 -> 29.43 dB; held-out seed 1 0.100 -> 0.095 m; the demo 30.5 -> 30.8 dB)
     poses: bool = True  # refine the rig poses through the renderer
     exposure: bool = True  # fit a per-image affine colour (gain, bias)
 
@@ -98,6 +106,10 @@ def _at_least(value, src, section, key, name):
     low, strict, why = MINIMUMS.get((section, key), (0, False, ""))
     if value < low or (strict and value <= low):
         raise InputError(src, name, f"expected {'more than' if strict else 'at least'} {low} ({why}), got {value!r}")
+    if (section, key) in MAXIMUMS:
+        high, strict, why = MAXIMUMS[(section, key)]
+        if value > high or (strict and value >= high):
+            raise InputError(src, name, f"expected {'less than' if strict else 'at most'} {high} ({why}), got {value!r}")
     return value
 
 

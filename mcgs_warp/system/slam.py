@@ -112,6 +112,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
+        self.mapper.sky_depth_veto = self.exact_depth  # a region exact sensor depth measures is not sky
         self.graph = FactorGraph(self.buf, self.overlap, GraphConfig(max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
         self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._mapped_depth: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with

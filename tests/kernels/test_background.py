@@ -46,7 +46,7 @@ def test_degree_one_terms_point_along_the_world_axes():
     np.testing.assert_allclose(Y[:, 1:4], [[0, 0, -c], [-c, 0, 0], [0, c, 0]], atol=1e-6)
 
 
-def setup(model, device, rng):
+def setup(model, device, rng, cube=0):
     cam = cameras()[model]
     H, W = cam.height, cam.width
     cams = wp.array([cam, cam], dtype=Camera, device=device)
@@ -56,7 +56,7 @@ def setup(model, device, rng):
     viewmats = wp.array(T_c_w, dtype=wp.mat44, device=device)
     color = rng.uniform(0, 1, (2, H, W, 3)).astype(np.float32)
     alpha = rng.uniform(0, 1, (2, H, W)).astype(np.float32)
-    coeffs = rng.normal(size=(bg.N_COEFFS, 3)).astype(np.float32)
+    coeffs = rng.normal(size=(bg.n_coeffs(cube), 3)).astype(np.float32)
     return cams, rays, viewmats, T_c_w, color, alpha, coeffs
 
 
@@ -71,16 +71,24 @@ def test_background_is_seen_through_the_transmittance_in_world_directions(device
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     want = color + (1 - alpha)[..., None] * (basis(d.reshape(-1, 3)) @ coeffs).reshape(color.shape)
     np.testing.assert_allclose(out, want, atol=2e-5)
+    # a cube map adds its texels, looked up by the dominant axis and bilinear between texels:
+    # a cube whose every texel is the same colour adds that colour everywhere
+    R = 5
+    cube = np.concatenate([coeffs, np.tile([[0.1, -0.2, 0.3]], (6 * R * R, 1))]).astype(np.float32)
+    with_cube = bg.composite(arr(color, wp.vec3), arr(alpha, float), rays, viewmats, cams, arr(cube, wp.vec3)).numpy()
+    np.testing.assert_allclose(with_cube, want + (1 - alpha)[..., None] * np.array([0.1, -0.2, 0.3]), atol=2e-5)
     # opaque splats hide it completely
     opaque = bg.composite(arr(color, wp.vec3), arr(np.ones_like(alpha), float), rays, viewmats, cams, arr(coeffs, wp.vec3)).numpy()
     np.testing.assert_allclose(opaque, color, atol=1e-6)
 
 
 @pytest.mark.parametrize("device", devices())
-@pytest.mark.parametrize("model", MODELS)
-def test_background_gradients_match_finite_differences(model, device):
+@pytest.mark.parametrize("model,cube", [(m, 0) for m in MODELS] + [("equirectangular", 3)])
+def test_background_gradients_match_finite_differences(model, cube, device):
+    """Harmonics alone, and with a 3x3-texel cube map (an all-around camera sees every face
+    and every texel)."""
     rng = np.random.default_rng(2)
-    cams, rays, viewmats, _, color, alpha, coeffs = setup(model, device, rng)
+    cams, rays, viewmats, _, color, alpha, coeffs = setup(model, device, rng, cube)
     r = rays.numpy()
     r[1, 0, 1:4] = np.nan  # pixels without a ray (as beyond a fisheye's domain)
     rays = wp.array(r, dtype=wp.vec3, device=device)
@@ -94,12 +102,18 @@ def test_background_gradients_match_finite_differences(model, device):
     g_alpha, g_coeffs = g_alpha.numpy(), g_coeffs.numpy()
     h = 1e-2  # L is linear in both: the differences are exact up to float32 rounding
     fd = np.zeros_like(coeffs, dtype=np.float64)
-    for idx in np.ndindex(coeffs.shape):
+    checked = list(np.ndindex(coeffs.shape))
+    if cube:  # every harmonic, and a sample of texels on each face
+        checked = checked[: 3 * bg.N_COEFFS] + [checked[i] for i in rng.choice(np.arange(3 * bg.N_COEFFS, len(checked)), 36, replace=False)]
+    for idx in checked:
         up, dn = coeffs.copy(), coeffs.copy()
         up[idx] += h
         dn[idx] -= h
         fd[idx] = (loss(alpha, up) - loss(alpha, dn)) / (2 * h)
-    assert np.abs(g_coeffs - fd).max() < 2e-3 * np.abs(fd).max()
+    rows = tuple(np.array(checked).T)
+    assert np.abs(g_coeffs[rows] - fd[rows]).max() < 2e-3 * np.abs(fd[rows]).max()
+    if cube:
+        assert (np.abs(g_coeffs[bg.N_COEFFS :]).sum(1) > 0).all()  # the all-around view reaches every texel
     for c, y, x in [(0, 3, 5), (1, 20, 30), (0, 40, 60), (1, 0, 0)]:
         up, dn = alpha.copy(), alpha.copy()
         up[c, y, x] += h
@@ -112,19 +126,21 @@ def test_background_gradients_match_finite_differences(model, device):
 
 
 @pytest.mark.parametrize("device", devices())
-def test_background_adjoint_matches_tape(device):
+@pytest.mark.parametrize("cube", [0, 4])
+def test_background_adjoint_matches_tape(cube, device):
     rng = np.random.default_rng(3)
-    cams, rays, viewmats, _, color, alpha, coeffs = setup("pinhole", device, rng)
+    cams, rays, viewmats, _, color, alpha, coeffs = setup("pinhole", device, rng, cube)
     C = wp.array(color, dtype=wp.vec3, device=device, requires_grad=True)
     A = wp.array(alpha, dtype=float, device=device, requires_grad=True)
     K = wp.array(coeffs, dtype=wp.vec3, device=device, requires_grad=True)
     out = wp.zeros(color.shape[:3], dtype=wp.vec3, device=device, requires_grad=True)
+    B = wp.zeros(color.shape[:3], dtype=wp.vec3, device=device, requires_grad=True)
     tape = wp.Tape()
     with tape:
-        wp.launch(bg.composite_kernel, dim=color.shape[:3], inputs=[C, A, rays, viewmats, cams, K], outputs=[out], device=device)
+        wp.launch(bg.composite_kernel, dim=color.shape[:3], inputs=[C, A, rays, viewmats, cams, K, cube, 0], outputs=[out, B], device=device)
     g = rng.normal(size=color.shape).astype(np.float32)
     tape.backward(grads={out: wp.array(g, dtype=wp.vec3, device=device)})
-    g_alpha, g_coeffs = bg.composite_backward(A, rays, viewmats, cams, K, wp.array(g, dtype=wp.vec3, device=device))
+    g_alpha, g_coeffs = bg.composite_backward(A, rays, viewmats, cams, K, wp.array(g, dtype=wp.vec3, device=device), background=B)
     np.testing.assert_allclose(C.grad.numpy(), g, atol=1e-6)  # the splats' colour passes through
     np.testing.assert_allclose(g_alpha.numpy(), A.grad.numpy(), rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(g_coeffs.numpy(), K.grad.numpy(), rtol=1e-3, atol=1e-3)

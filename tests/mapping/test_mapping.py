@@ -169,7 +169,7 @@ def test_pose_refinement_through_the_renderer_reduces_error(fitted, mapping_seq)
 
 
 def test_densify_and_prune_counts(fitted, mapping_seq):
-    m = make_mapper(mapping_seq, MappingConfig(densify_every=0, split_scale=0.05), fitted)
+    m = make_mapper(mapping_seq, MappingConfig(densify_every=0, split_scale=0.05, prune_floaters=False), fitted)  # the view rules: tests/mapping/test_density.py
     m.step(0)  # creates optimizer state
     d = m.map.to_numpy()
     n = len(d["means"])
@@ -260,7 +260,8 @@ def test_follow_depth_moves_each_gaussian_along_its_camera_ray(mapping_seq):
 def test_background_learns_a_sky_that_no_gaussian_covers(mapping_seq):
     """The top quarter of every image is replaced by a sky at infinity (colour by world
     direction, no depth): with the background the mapper renders it (and a direction no
-    keyframe saw in between is interpolated); without it that region stays black."""
+    keyframe saw in between is interpolated); without it that region stays black (nothing is
+    seeded where no depth is: mapping.insert_fill off)."""
     def sky(d):
         return np.clip(0.55 + 0.25 * d[..., 1:2] + 0.15 * d[..., 0:1] * d[..., 2:3] + np.array([0.0, 0.05, 0.1]), 0, 1)
 
@@ -270,7 +271,7 @@ def test_background_learns_a_sky_that_no_gaussian_covers(mapping_seq):
 
         from mcgs_warp.mapping.mapper import Mapper
 
-        m = Mapper(Problem(mapping_seq, KEYFRAMES, cross_view=False).buf, config=MappingConfig(background=background, densify_every=0))
+        m = Mapper(Problem(mapping_seq, KEYFRAMES, cross_view=False).buf, config=MappingConfig(background=background, densify_every=0, insert_fill=False))
         poses = m.buf.get_poses()
         masks = []
         for k, f in enumerate(KEYFRAMES):

@@ -129,3 +129,16 @@ def test_run_config_rejects_values_that_switch_a_stage_off(tmp_path, text, messa
         load_run_config(path)
     path.write_text(text.replace(": 0\n", ": 2\n").replace(": 1\n", ": 2\n"))
     load_run_config(path)  # the smallest sensible value passes
+
+
+@pytest.mark.parametrize("value, message", [("0", "expected more than 0"), ("1", "expected less than 1"), ("1.5", "expected less than 1")])
+def test_run_config_rejects_an_opacity_outside_zero_and_one(tmp_path, value, message):
+    from mcgs_warp.errors import InputError
+    from mcgs_warp.system.config import load_run_config
+
+    path = tmp_path / "run.yaml"
+    path.write_text(f"mapping:\n  fill_opacity: {value}\n")
+    with pytest.raises(InputError, match=f"mapping.fill_opacity: {message}"):
+        load_run_config(path)
+    path.write_text("mapping:\n  fill_opacity: 0.5\n")
+    assert load_run_config(path).mapping.fill_opacity == 0.5

@@ -1,0 +1,146 @@
+"""Covering every camera's view: sky segmentation, seeding where no depth was measured, and
+the sky term that keeps Gaussians out of the sky."""
+
+import numpy as np
+
+from conftest import KEYFRAMES
+from mcgs_warp.mapping.gaussian_map import GaussianMap, fill_depth
+from mcgs_warp.mapping.mapper import MappingConfig
+from mcgs_warp.mapping.sky import sky_mask
+
+
+def street_view(h=96, w=128, seed=0):
+    """A grey image: a bright sky (smooth vertical gradient) over the top third, a textured
+    tree line and road below; the depth a run would estimate (none in the sky, a few spurious
+    matches in it)."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((h, w, 3), np.float32)
+    top = h // 3
+    sky = 0.85 + 0.1 * np.linspace(0, 1, top)[:, None] * np.ones((1, w))
+    img[:top] = sky[..., None]
+    img[top:] = (0.15 + 0.35 * rng.random((h - top, w)))[..., None]
+    depth = np.zeros((h, w), np.float32)
+    depth[top:] = 20.0
+    spurious = rng.random((top, w)) < 0.2  # propagated tree depths inside the sky
+    depth[:top][spurious] = 30.0
+    return img, depth, top
+
+
+def test_sky_mask_finds_the_bright_flat_sky_and_nothing_else():
+    img, depth, top = street_view()
+    mask = sky_mask(img, None)
+    assert mask[: top - 3].mean() > 0.98 and mask[top + 3 :].mean() == 0.0
+    # a small bright flat patch (a road sign) is not sky
+    img2 = img.copy()
+    img2[:top] = 0.3 + 0.3 * np.random.default_rng(1).random((top, img.shape[1], 1))  # textured top: no sky at all
+    img2[60:66, 20:26] = 1.0
+    assert not sky_mask(img2, None).any()
+
+
+def test_measured_depth_vetoes_a_bright_flat_wall():
+    """With exact sensor depth a lit wall that the sensor measures is not sky; the sky, which
+    the sensor does not measure, still is."""
+    img, depth, top = street_view()
+    assert not sky_mask(img, np.full(depth.shape, 3.0, np.float32)).any()
+    sensor = depth.copy()
+    sensor[:top] = 0.0
+    assert sky_mask(img, sensor)[: top - 3].mean() > 0.98
+
+
+def test_fill_depth_takes_the_neighbourhoods_inverse_depth():
+    d = np.zeros((16, 16), np.float32)
+    d[:, :8] = 2.0  # a near half and a far half with a hole column between them
+    d[:, 9:] = 8.0
+    f = fill_depth(d)
+    np.testing.assert_array_equal(f[d > 0], d[d > 0])  # measured depth unchanged
+    assert (f > 0).all() and ((f[:, 8] >= 2.0) & (f[:, 8] <= 8.0)).all()
+    # a hole far from everything takes the harmonic mean of what surrounds it
+    d2 = np.zeros((8, 8), np.float32)
+    d2[0, 0], d2[7, 7] = 2.0, 8.0
+    assert np.isclose(fill_depth(d2)[3, 4], 2 / (1 / 2 + 1 / 8), rtol=1e-5)
+    assert np.isclose(fill_depth(d2)[1, 1], 2.0) and np.isclose(fill_depth(d2)[6, 6], 8.0)  # nearest block first
+    assert not fill_depth(np.zeros((4, 4), np.float32)).any()
+
+
+def test_fill_seeds_every_allowed_pixel_without_depth():
+    """Without fill only pixels with a depth target seed Gaussians; with it every stride-th
+    pixel the mask allows does, at its neighbourhood's depth."""
+    from mcgs_warp.rig import CameraSpec, Rig
+
+    cam = CameraSpec(name="c", model="pinhole", width=64, height=48, intrinsics=(60.0, 60.0, 31.5, 23.5))
+    image = np.full((48, 64, 3), 0.5, np.float32)
+    depth = np.zeros((48, 64), np.float32)
+    depth[24:] = 5.0  # the top half measured nothing
+    counts = {}
+    for fill in (False, True):
+        gmap = GaussianMap("cpu")
+        counts[fill] = gmap.insert_from_depth(Rig([cam]), np.eye(4), [image], [depth], anchor=0, stride=4, fill=fill, fill_opacity=0.1)
+        if fill:
+            d = gmap.to_numpy()
+            np.testing.assert_allclose(d["means"][:, 2], 5.0, rtol=1e-5)  # the top half takes the bottom's depth
+            opacity = 1 / (1 + np.exp(-d["opacity_logits"]))
+            guessed = d["means"][:, 1] < 0  # above the image centre: the top half, where nothing was measured
+            np.testing.assert_allclose(opacity[guessed], 0.1, rtol=1e-5)  # faint until the colour loss wants them
+            np.testing.assert_allclose(opacity[~guessed], 0.9, rtol=1e-5)
+    assert counts[False] == 16 * 6 and counts[True] == 16 * 12, counts
+
+
+def test_sky_term_keeps_gaussians_out_of_the_sky(mapping_seq):
+    """Gaussians seeded across the top quarter (as a spurious depth would) where the images
+    show a bright flat sky: with the sky term their alpha there falls well below what the
+    colour loss alone leaves."""
+    from problems import Problem
+
+    from mcgs_warp.mapping.mapper import Mapper
+
+    alphas = {}
+    for lam in (0.0, 1.0):
+        m = Mapper(Problem(mapping_seq, KEYFRAMES, cross_view=False).buf, config=MappingConfig(sky=True, lambda_sky=lam, densify_every=0, insert_fill=False))
+        tops = []
+        for k, f in enumerate(KEYFRAMES):
+            images, depths, top_k = [], [], []
+            for c, spec in enumerate(m.buf.rig.cameras):
+                top = np.zeros((spec.height, spec.width), bool)
+                top[: spec.height // 4] = True
+                images.append(np.where(top[..., None], np.float32(0.9), m.buf.images[k][c]).astype(np.float32))
+                depths.append(np.where(top, 6.0, mapping_seq[f].depths[c]).astype(np.float32))
+                top_k.append(top)
+            m.buf.images[k] = images
+            # Gaussians in the sky, as a spurious depth would seed them without the segmentation
+            m.map.insert_from_depth(m.buf.rig, m.buf.get_poses()[k], images, depths, anchor=k, mask=top_k)
+            m.add_keyframe(k, depths)
+            assert all(s[: s.shape[0] // 4 - 2].all() for s in m.sky[k])  # segmented as sky
+            tops += top_k
+        m.optimize(60)
+        a = []
+        for k in range(len(KEYFRAMES)):
+            _, out = m.render(m.views(k))
+            al = out.alpha.numpy()
+            for c, spec in enumerate(m.buf.rig.cameras):
+                a.append(al[c, : spec.height, : spec.width][tops[k * len(m.buf.rig.cameras) + c]].mean())
+        alphas[lam] = float(np.mean(a))
+    assert alphas[1.0] < alphas[0.0] - 0.2, alphas  # 0.66 vs 1.00 after 60 steps
+
+
+def test_sky_masks_survive_a_checkpoint(mapping_seq):
+    from problems import Problem
+
+    from mcgs_warp.mapping.mapper import Mapper
+
+    def mapper():
+        return Mapper(Problem(mapping_seq, KEYFRAMES[:2], cross_view=False).buf, config=MappingConfig(sky=True, background_cube=4))
+
+    m = mapper()
+    for k, f in enumerate(KEYFRAMES[:2]):
+        m.buf.images[k] = [np.where(np.arange(s.height)[:, None, None] < s.height // 3, np.float32(0.95), img) for img, s in zip(m.buf.images[k], m.buf.rig.cameras)]
+        m.add_keyframe(k, mapping_seq[f].depths)
+    assert any(mask.any() for mask in m.sky[1])
+    m.optimize(2)
+    state = m.state_arrays()
+    other = mapper()
+    other.load_state_arrays(state, {k: m.buf.targets[k] for k in m.buf.targets})
+    assert sorted(other.sky) == sorted(m.sky)
+    for k in m.sky:
+        for a, b in zip(m.sky[k], other.sky[k]):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(other.background.numpy(), m.background.numpy())
