@@ -143,7 +143,7 @@ def isotropy_loss_kernel(
 SKY_EPS = wp.constant(0.02)  # the sky term's floor on transmittance (1 - alpha)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def sky_alpha_loss_kernel(
     alpha: wp.array(dtype=float, ndim=3),  # [C,H,W] rendered
     sky: wp.array(dtype=float, ndim=3),  # [C,H,W] weight per pixel: 1 / (camera's pixels) on sky, else 0

@@ -4,7 +4,8 @@ New Gaussians come from back-projected keyframe depth (every ``stride``-th pixel
 coloured from the image, isotropic with a scale of half their footprint: the ``stride``
 pixels between samples at their range, ``0.5 stride r / f`` (``f`` the camera's pixels per
 radian), so neighbouring splats meet at about one sigma at any depth, resolution and field
-of view, whatever else the map holds there; unit rotation and opacity 0.9 (logit). Each
+of view, whatever else the map holds there; unit rotation and opacity 0.9 (a Gaussian
+seeded where no depth was measured, at its neighbourhood's depth, starts fainter). Each
 Gaussian remembers the keyframe it was created from, so when tracking moves that
 keyframe its Gaussians move with it (paper eq. 12-13).
 

@@ -38,7 +38,7 @@ from ..geometry import adjoint
 from ..kernels import Views, render, render_backward
 from ..kernels import background as bg
 from ..kernels.se3 import mat66
-from .gaussian_map import DensifyReport, GaussianMap
+from .gaussian_map import DensifyReport, GaussianMap, logit
 from .losses import MappingLoss
 from .optimizer import Adam, flat
 
@@ -163,7 +163,7 @@ class Mapper:
         self.buf.targets[k] = list(depths)
         images = self.buf.images[k]
         if self.cfg.sky:
-            self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None) for c in range(len(self.cams))]
+            self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None, far=self.cfg.insert_max_depth) for c in range(len(self.cams))]
         free = [np.ones((s.height, s.width), bool) if not self.cfg.sky else ~self.sky[k][c] for c, s in enumerate(self.buf.rig.cameras)]
         mask = free
         if len(self.map):
@@ -334,7 +334,7 @@ class Mapper:
         g = self.map.gaussians
         if len(self.map) == 0:
             return
-        cap = float(np.log(2 * self.cfg.prune_opacity / (1 - 2 * self.cfg.prune_opacity)))
+        cap = float(logit(2 * self.cfg.prune_opacity))
         logits = g.opacity_logits.numpy()
         g.opacity_logits.assign(np.minimum(logits, cap).astype(np.float32))
         if "opacity_logits" in self.adam.state:  # moments of the old opacities would undo the reset

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-FAR = 50.0  # m: a depth target beyond this counts as none (as GaussianMap.insert_from_depth's max_depth)
+FAR = 100.0  # m: a depth target beyond this counts as none (the mapper passes its insert_max_depth)
 
 
 def sky_mask(image: np.ndarray, depth: np.ndarray | None, far: float = FAR, window: int = 7, flatness: float = 0.02,
