@@ -169,14 +169,15 @@ class GaussianMap:
         return report, np.concatenate(index)
 
     # ----------------------------------------------------------------------------------
-    def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0, fill: bool = False, fill_opacity: float = INITIAL_OPACITY) -> int:
+    def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0, fill: bool = False, fill_opacity: float = INITIAL_OPACITY, fill_guess=None) -> int:
         """Back-project every ``stride``-th pixel with depth of each camera (``mask[c]``
         [H,W] bool limits to unobserved pixels) into new Gaussians anchored to ``anchor``,
         sized by their footprint (module docstring). With ``fill``, the masked pixels
         without a depth target take the depth their neighbourhood has (:func:`fill_depth`):
         every pixel the mask allows gets a Gaussian, left to the photometric loss; those
         start at ``fill_opacity`` (faint: a guessed depth must not hide what other views
-        measured until the colour loss wants it)."""
+        measured until the colour loss wants it). ``fill_guess[c]`` [H,W] (m, 0 = none): a
+        depth to take instead of the neighbourhood's where it is given (the map's own)."""
         from ..ba.edges import unproject_pixels
 
         pts, cols, sizes, guessed = [], [], [], []
@@ -187,6 +188,8 @@ class GaussianMap:
             measured = (d > 0) & (d < max_depth)
             if fill:
                 d = fill_depth(np.where(measured, d, 0.0))
+                if fill_guess is not None and fill_guess[c] is not None:
+                    d = np.where(~measured & (fill_guess[c] > 0), fill_guess[c], d)
             o = stride // 2
             v, u = np.mgrid[o : spec.height : stride, o : spec.width : stride]
             z = d[v, u]
@@ -255,27 +258,69 @@ class GaussianMap:
                 self.move_anchored(k, B @ np.linalg.inv(A), scale)
 
 
+FILL_MIN_SAMPLES = 16  # measured pixels a block needs before its plane is fitted
+
+
 def fill_depth(depth: np.ndarray) -> np.ndarray:
-    """``depth`` [H,W] (m, 0 = none) with its holes filled from their neighbourhood: a
-    push-pull pyramid of inverse depth (each hole takes the mean inverse depth of the
-    valid pixels in the smallest 2^l block around it that has any, so far stays far and
-    a hole between near and far takes their harmonic mean). All zeros stay zeros."""
+    """``depth`` [H,W] (m, 0 = none) with its holes filled from their neighbourhood: each
+    hole takes the plane (inverse depth affine in the pixel coordinates: exact for a plane
+    seen by a pinhole camera, locally so under distortion) fitted to the valid pixels of the
+    smallest 2^l block around it that holds at least ``FILL_MIN_SAMPLES`` of them spread over
+    two dimensions, else their mean inverse depth (a push-pull pyramid of the fit's moments).
+    A road or floor that nothing measured near the rig continues the slope it has where it
+    was measured, instead of taking the far depth above it (the street's near road: 25 m
+    for 3 m); the plane's value stays within 3x of the block's mean inverse depth. All zeros
+    stay zeros."""
     import cv2
 
     d = np.asarray(depth, np.float32)
     valid = d > 0
     if valid.all() or not valid.any():
         return d
-    levels = [(np.where(valid, 1.0 / np.maximum(d, 1e-6), 0.0).astype(np.float32), valid.astype(np.float32))]
-    while max(levels[-1][1].shape) > 1 and levels[-1][1].min() == 0:
-        s, w = levels[-1]
-        h2, w2 = (s.shape[0] + 1) // 2, (s.shape[1] + 1) // 2
-        pad = ((0, 2 * h2 - s.shape[0]), (0, 2 * w2 - s.shape[1]))
-        s, w = np.pad(s, pad), np.pad(w, pad)
-        levels.append((s.reshape(h2, 2, w2, 2).sum((1, 3)), w.reshape(h2, 2, w2, 2).sum((1, 3))))
-    s, w = levels[-1]
-    inv = s / np.maximum(w, 1e-12)
-    for s, w in reversed(levels[:-1]):
-        up = cv2.resize(inv, (2 * inv.shape[1], 2 * inv.shape[0]), interpolation=cv2.INTER_NEAREST)[: s.shape[0], : s.shape[1]]
-        inv = np.where(w > 0, s / np.maximum(w, 1e-12), up)
+    h, w = d.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    u, v = (u - w / 2) / max(h, w), (v - h / 2) / max(h, w)  # centred, unit scale: a well-conditioned fit
+    s = np.where(valid, 1.0 / np.maximum(d, 1e-6), 0.0)
+    wt = valid.astype(np.float64)
+    # moments: 1, u, v, uu, uv, vv, s, su, sv (each times the valid weight)
+    moments = np.stack([wt, wt * u, wt * v, wt * u * u, wt * u * v, wt * v * v, wt * s, wt * s * u, wt * s * v])
+    levels = [moments]
+    while max(levels[-1].shape[1:]) > 1 and levels[-1][0].min() < FILL_MIN_SAMPLES:
+        m = levels[-1]
+        h2, w2 = (m.shape[1] + 1) // 2, (m.shape[2] + 1) // 2
+        m = np.pad(m, ((0, 0), (0, 2 * h2 - m.shape[1]), (0, 2 * w2 - m.shape[2])))
+        levels.append(m.reshape(9, h2, 2, w2, 2).sum((2, 4)))
+
+    def plane(m, level: int, top: bool):
+        """Per block of ``2^level`` px: (a, b, c, mean) of s = a u + b v + c, and whether the
+        block is usable (enough samples; at the top any)."""
+        n = m[0]
+        safe = np.maximum(n, 1e-12)
+        mean = m[6] / safe
+        mu, mv = m[1] / safe, m[2] / safe
+        cuu, cuv, cvv = m[3] / safe - mu * mu, m[4] / safe - mu * mv, m[5] / safe - mv * mv
+        csu, csv = m[7] / safe - mean * mu, m[8] / safe - mean * mv
+        det = cuu * cvv - cuv * cuv
+        full = (2**level / max(h, w)) ** 2 / 12  # the variance of a whole block's coordinates
+        spread = det > (0.1 * full) ** 2  # samples spread over two dimensions, not a line
+        enough = n >= FILL_MIN_SAMPLES
+        fit = enough & spread
+        sd = np.where(fit, det, 1.0)
+        a = np.where(fit, (csu * cvv - csv * cuv) / sd, 0.0)
+        b = np.where(fit, (csv * cuu - csu * cuv) / sd, 0.0)
+        c = mean - a * mu - b * mv
+        usable = enough | (top & (n > 0))
+        return np.stack([a, b, c, mean]), usable
+
+    def upsample(coef, shape):
+        return np.stack([cv2.resize(x, (2 * coef.shape[2], 2 * coef.shape[1]), interpolation=cv2.INTER_NEAREST)[: shape[0], : shape[1]] for x in coef])
+
+    coef, _ = plane(levels[-1], len(levels) - 1, True)
+    for level in range(len(levels) - 2, 0, -1):
+        here, usable = plane(levels[level], level, False)
+        coef = np.where(usable[None], here, upsample(coef, levels[level].shape[1:]))
+    if len(levels) > 1:
+        coef = upsample(coef, (h, w))
+    a, b, c, mean = coef
+    inv = np.clip(a * u + b * v + c, mean / 3, mean * 3)
     return np.where(valid, d, 1.0 / np.maximum(inv, 1e-6)).astype(np.float32)

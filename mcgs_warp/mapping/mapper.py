@@ -18,8 +18,9 @@ Densify and prune every ``densify_every`` iterations: the map's gradient rules
 (:meth:`GaussianMap.densify_and_prune`) plus the view rules of :meth:`Mapper.view_statistics`
 (floaters in front of the keyframes' depth, an on-screen size budget). New keyframes add
 Gaussians where the current map leaves the image uncovered (rendered alpha below
-``new_alpha``), also where no depth was measured (faint, at their neighbourhood's depth:
-``insert_fill``), and, with ``sky``, never on the view's sky (:mod:`.sky`), whose rendered
+``new_alpha``) or renders behind the measured depth, also where no depth was measured
+(faint, at the depth the map renders there, else at their neighbourhood's: ``insert_fill``), and, with
+``sky``, never on the view's sky (:mod:`.sky`), whose rendered
 alpha a cross-entropy term pushes to zero so the background shows there.
 """
 
@@ -69,7 +70,7 @@ class MappingConfig:
     insert_fill: bool = True  # also seed Gaussians where no depth target is (uncovered, not sky), at the depth of their neighbourhood (GaussianMap.insert_from_depth): the view is covered even where nothing measured depth
     fill_opacity: float = 0.1  # initial opacity of the Gaussians seeded at a guessed (filled) depth
     insert_max_depth: float = 100.0  # m: depth targets beyond this seed no Gaussian (the background stands for the far field)
-    new_alpha: float = 0.5  # add Gaussians where rendered alpha is below this
+    new_alpha: float = 0.5  # add Gaussians where rendered alpha is below this (or the render is floater_tolerance behind the measured depth)
     densify_every: int = 100
     densify_grad: float = 1e-5  # mean |dL/d mean2d| per view (loss per px) that triggers clone/split
     split_scale: float = 0.05  # m: larger Gaussians are split, smaller ones cloned
@@ -165,13 +166,22 @@ class Mapper:
         if self.cfg.sky:
             self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None, far=self.cfg.insert_max_depth) for c in range(len(self.cams))]
         free = [np.ones((s.height, s.width), bool) if not self.cfg.sky else ~self.sky[k][c] for c, s in enumerate(self.buf.rig.cameras)]
-        mask = free
+        mask, guess = free, None
         if len(self.map):
             out = render(self.map.gaussians, self.views(k))
-            alpha = out.alpha.numpy()
-            mask = [(alpha[c, : s.height, : s.width] < self.cfg.new_alpha) & free[c] for c, s in enumerate(self.buf.rig.cameras)]
+            alpha, rendered = out.alpha.numpy(), out.depth.numpy()
+            # new Gaussians where the map is thin, and where it renders behind a measured depth
+            # (something the map lacks stands in front: SplaTAM's rule; without it a surface
+            # that guessed-depth Gaussians already cover is never seeded where it was measured)
+            behind = [(d > 0) & (rendered[c, : s.height, : s.width] > (1 + self.cfg.floater_tolerance) * d) if d is not None else np.zeros((s.height, s.width), bool) for c, (s, d) in enumerate(zip(self.buf.rig.cameras, depths))]
+            mask = [((alpha[c, : s.height, : s.width] < self.cfg.new_alpha) | behind[c]) & free[c] for c, s in enumerate(self.buf.rig.cameras)]
+            # where the map already has (faint) Gaussians and nothing measured depth, a fill
+            # Gaussian takes the depth the map renders there: it thickens that surface instead of
+            # stacking this keyframe's own guess at another depth (which doubled the street's depth
+            # error on pixels covered either way)
+            guess = [np.where(alpha[c, : s.height, : s.width] >= 0.5 * self.cfg.fill_opacity, rendered[c, : s.height, : s.width], 0.0) for c, s in enumerate(self.buf.rig.cameras)]
         before = len(self.map)
-        added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity)
+        added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity, fill_guess=guess)
         self._remap_optimizer(np.concatenate([np.arange(before), -np.ones(added, int)]))
         return added
 

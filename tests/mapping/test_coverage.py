@@ -54,12 +54,30 @@ def test_fill_depth_takes_the_neighbourhoods_inverse_depth():
     f = fill_depth(d)
     np.testing.assert_array_equal(f[d > 0], d[d > 0])  # measured depth unchanged
     assert (f > 0).all() and ((f[:, 8] >= 2.0) & (f[:, 8] <= 8.0)).all()
-    # a hole far from everything takes the harmonic mean of what surrounds it
+    # too few samples for a plane: the harmonic mean of what surrounds the hole
     d2 = np.zeros((8, 8), np.float32)
     d2[0, 0], d2[7, 7] = 2.0, 8.0
     assert np.isclose(fill_depth(d2)[3, 4], 2 / (1 / 2 + 1 / 8), rtol=1e-5)
-    assert np.isclose(fill_depth(d2)[1, 1], 2.0) and np.isclose(fill_depth(d2)[6, 6], 8.0)  # nearest block first
     assert not fill_depth(np.zeros((4, 4), np.float32)).any()
+
+
+def test_fill_depth_continues_a_ground_plane_below_where_it_was_measured():
+    """A road seen by a pinhole camera (inverse depth linear in the row below the horizon),
+    measured only down to row 70: the rows below continue the plane (the near road), where
+    a neighbourhood mean would put them at the far depth above."""
+    h, w = 96, 128
+    v = np.mgrid[0:h, 0:w][0]
+    inv = np.clip((v - 40) * 0.01, 0, None)  # horizon at row 40, 2 m at the bottom row
+    truth = np.where(inv > 0, 1 / np.maximum(inv, 1e-9), 0).astype(np.float32)
+    measured = truth.copy()
+    measured[70:] = 0
+    f = fill_depth(measured)
+    np.testing.assert_allclose(f[70:], truth[70:], rtol=1e-3)
+    # a plane beside the measured part too (a wall continued sideways)
+    wall = np.broadcast_to(1 / (0.1 + 0.004 * np.arange(w)), (h, w)).astype(np.float32)
+    part = wall.copy()
+    part[:, 90:] = 0
+    np.testing.assert_allclose(fill_depth(part)[:, 90:], wall[:, 90:], rtol=1e-3)
 
 
 def test_fill_seeds_every_allowed_pixel_without_depth():
@@ -144,3 +162,60 @@ def test_sky_masks_survive_a_checkpoint(mapping_seq):
         for a, b in zip(m.sky[k], other.sky[k]):
             np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(other.background.numpy(), m.background.numpy())
+
+
+def test_fill_thickens_the_maps_surface_instead_of_stacking_a_new_guess(mapping_seq):
+    """Fill Gaussians start faint (below ``new_alpha``), so a keyframe that sees the same
+    unmeasured region again seeds there again: at the depth the map renders, not at its own
+    neighbourhood guess (each keyframe stacking its guess at another depth doubled the
+    street's depth error on pixels that were covered either way)."""
+    from problems import Problem
+
+    from mcgs_warp.kernels import render
+    from mcgs_warp.mapping.mapper import Mapper
+
+    m = Mapper(Problem(mapping_seq, KEYFRAMES[:1], cross_view=False).buf, config=MappingConfig(densify_every=0))
+
+    def measured_below(scale):
+        out = []
+        for c, spec in enumerate(m.buf.rig.cameras):
+            d = scale * np.asarray(mapping_seq[KEYFRAMES[0]].depths[c], np.float32)
+            d[: spec.height // 2] = 0.0  # nothing measured the top half
+            out.append(d)
+        return out
+
+    def top_depth():
+        out = render(m.map.gaussians, m.views(0))
+        return [out.depth.numpy()[c, 4 : s.height // 2 - 4, 4 : s.width - 4] for c, s in enumerate(m.buf.rig.cameras)]
+
+    m.add_keyframe(0, measured_below(1.0))
+    before = top_depth()
+    n = len(m.map)
+    # the same view again, its measured half now 1.5x as far: a neighbourhood guess would move
+    # the top half 1.5x away; the new fill thickens the surface the map has there
+    added = m.add_keyframe(0, measured_below(1.5))
+    assert added > 0.3 * n  # the faint top half is seeded again
+    after = top_depth()
+    for b, a in zip(before, after):
+        ok = (b > 0) & (a > 0)
+        assert np.median(np.abs(a[ok] / b[ok] - 1)) < 0.02, np.median(a[ok] / b[ok])
+
+
+def test_a_surface_measured_in_front_of_the_map_is_seeded(mapping_seq):
+    """Where the map renders behind a measured depth (it covers the view, but with Gaussians
+    at a guessed or wrong depth), the measured surface is seeded in front of them."""
+    from problems import Problem
+
+    from mcgs_warp.mapping.mapper import Mapper
+
+    m = Mapper(Problem(mapping_seq, KEYFRAMES[:1], cross_view=False).buf, config=MappingConfig(densify_every=0, insert_fill=False))
+    truth = [np.asarray(d, np.float32) for d in mapping_seq[KEYFRAMES[0]].depths]
+    first = m.add_keyframe(0, [2.0 * d for d in truth])  # the whole view covered, twice too far
+    near = []
+    for d in truth:
+        n = d.copy()
+        n[: d.shape[0] // 2] = 0.0  # the top half agrees with nothing: only the bottom half is measured
+        near.append(n)
+    added = m.add_keyframe(0, near)
+    assert 0.3 * first < added < 0.7 * first, (added, first)  # the bottom half, in front
+    assert m.add_keyframe(0, near) < 0.05 * first  # and only once

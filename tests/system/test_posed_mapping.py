@@ -49,7 +49,9 @@ def test_refine_poses_lets_the_refinement_move_a_perturbed_trajectory(rgb_sequen
     noisy = Trajectory(gt.timestamps, np.stack([T @ se3_exp(np.concatenate([rng.normal(0, 0.02, 3), rng.normal(0, 0.004, 3)])) if i else T for i, T in enumerate(gt.poses)]))
     held = run_sequence(seq.root, tmp_path / "held", small_config(), progress=False, poses=noisy)
     np.testing.assert_allclose(read_tum(tmp_path / "held" / "trajectory.txt").poses, invert(noisy.poses[0])[None] @ noisy.poses, atol=1e-5)
-    refined = run_sequence(seq.root, tmp_path / "refined", small_config(), progress=False, poses=noisy, refine_poses=True)
+    cfg = small_config()
+    cfg.refinement.iterations = 200  # 20 steps move a keyframe by about 1 mm at lr_pose: too little to tell from the map's own change
+    refined = run_sequence(seq.root, tmp_path / "refined", cfg, progress=False, poses=noisy, refine_poses=True)
     moved = read_tum(tmp_path / "refined" / "trajectory.txt").poses
     assert np.abs(moved - invert(noisy.poses[0])[None] @ noisy.poses).max() > 1e-3
     assert refined["ate_keyframes_se3_rmse_m"] < held["ate_keyframes_se3_rmse_m"], (refined["ate_keyframes_se3_rmse_m"], held["ate_keyframes_se3_rmse_m"])
