@@ -268,9 +268,8 @@ def fill_depth(depth: np.ndarray) -> np.ndarray:
     smallest 2^l block around it that holds at least ``FILL_MIN_SAMPLES`` of them spread over
     two dimensions, else their mean inverse depth (a push-pull pyramid of the fit's moments).
     A road or floor that nothing measured near the rig continues the slope it has where it
-    was measured, instead of taking the far depth above it (the street's near road: 25 m
-    for 3 m); the plane's value stays within 3x of the block's mean inverse depth. All zeros
-    stay zeros."""
+    was measured, instead of taking the far depth above it; the plane's value stays within
+    3x of the block's mean inverse depth. All zeros stay zeros."""
     import cv2
 
     d = np.asarray(depth, np.float32)

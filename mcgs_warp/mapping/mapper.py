@@ -67,7 +67,7 @@ class MappingConfig:
     sky: bool = False  # segment each keyframe view's sky (mapping/sky.py): no Gaussian is seeded there, it gets no depth target, and the rendered alpha there is penalized so the background shows the sky
     lambda_sky: float = 1.0  # weight of the sky term: binary cross-entropy of the rendered alpha against 0 on the sky, -log(1 - alpha), averaged over a camera's pixels (kernels/mapping.py)
     insert_stride: int = 4  # px between new Gaussians
-    insert_fill: bool = True  # also seed Gaussians where no depth target is (uncovered, not sky), at the depth of their neighbourhood (GaussianMap.insert_from_depth): the view is covered even where nothing measured depth
+    insert_fill: bool = True  # also seed Gaussians where no depth target is (uncovered, not sky), at the depth the map renders there, else their neighbourhood's plane (GaussianMap.insert_from_depth): the view is covered even where nothing measured depth
     fill_opacity: float = 0.1  # initial opacity of the Gaussians seeded at a guessed (filled) depth
     insert_max_depth: float = 100.0  # m: depth targets beyond this seed no Gaussian (the background stands for the far field)
     new_alpha: float = 0.5  # add Gaussians where rendered alpha is below this (or the render is floater_tolerance behind the measured depth)
