@@ -230,6 +230,44 @@ def mcba_cost_kernel(
     wp.atomic_add(cost, e, huber_cost(wp.sqrt(wgt) * wp.length(r), huber_delta))
 
 
+
+@wp.kernel
+def mcba_residual_kernel(
+    rays: wp.array(dtype=wp.vec3, ndim=3),
+    disp: wp.array(dtype=float, ndim=4),
+    poses: wp.array(dtype=wp.transform),
+    T_b_c: wp.array(dtype=wp.transform),
+    cameras: wp.array(dtype=Camera),
+    edges: wp.array(dtype=wp.vec4i),
+    targets: wp.array(dtype=wp.vec2, ndim=3),
+    weights: wp.array(dtype=float, ndim=3),
+    row0: int,  # first grid row of this launch
+    residual: wp.array(dtype=wp.vec2, ndim=3),  # [E,h,w] out: whitened residual sqrt(w) (target - uv), grid px
+    valid: wp.array(dtype=wp.int32, ndim=3),  # [E,h,w] out: 1 where the residual counts in the cost
+):
+    """Per-pixel whitened residuals of the dense class (its noise and correlation are
+    estimated from them: ``mcgs_warp.ba.variance``); ``valid`` is 0 exactly where the cost
+    kernel skips the pixel."""
+    e, y, x = wp.tid()
+    y = y + row0
+    edge = edges[e]
+    cam_i = cameras[edge[1]]
+    if x >= cam_i.width or y >= cam_i.height:
+        return
+    valid[e, y, x] = 0
+    target = targets[e, y, x]
+    wgt = residual_weight(weights[e, y, x], target)
+    d = disp[edge[0], edge[1], y, x]
+    if wgt <= 0.0 or d <= 0.0:
+        return
+    cam_j = cameras[edge[3]]
+    X_ci, X_bi, X_bj, X_cj = edge_geometry(rays[edge[1], y, x], d, poses[edge[0]], poses[edge[2]], T_b_c[edge[1]], T_b_c[edge[3]])
+    uv = camera_project(cam_j, X_cj)
+    if not residual_valid(cam_j, X_cj, uv):
+        return
+    residual[e, y, x] = wp.sqrt(wgt) * (target - uv)
+    valid[e, y, x] = 1
+
 # ---------------------------------------------------------------------------------------
 # Sparse Schur reduction (paper eq. 10) over a window of n keyframes held in slots 0..n-1.
 #

@@ -96,6 +96,11 @@ class DepthAlignmentFactors:
         W = self.w * np.where(s <= self.delta, 1.0, self.delta / np.maximum(s, 1e-300))
         return np.where(valid, cost, 0.0), np.where(valid, W, 0.0)
 
+    def noise(self, _poses=None):
+        """None: ``weight`` is in the dense class's units (as the depth prior's), so it keeps
+        its weight relative to the dense class (:mod:`.variance`)."""
+        return None
+
     def cost(self, poses, _disp=None) -> float:
         r, valid = self.residuals(poses)
         return float(self._robust(r, valid)[0].sum())

@@ -140,6 +140,15 @@ class KeypointFactors:
         e = (uv - p.obs_uv) / self.stride
         return e, J_i, J_j, J_d, valid & (self.disp[t] > 0)
 
+    def noise(self, poses: np.ndarray):
+        """The tracks' measured noise (:func:`~mcgs_warp.ba.variance.robust_variance` of the
+        whitened residual components; each track's point is an unknown they determine)."""
+        from .variance import robust_variance
+
+        e, valid = self.residuals(poses, self.disp)
+        z = (np.sqrt(self.p.obs_weight)[:, None] * e)[valid]
+        return robust_variance(z, unknowns=len(np.unique(self.p.obs_track[valid])))
+
     # Gauss-Newton terms -----------------------------------------------------------------
     def reduced_terms(self, poses: np.ndarray, lam: float):
         """The keypoint part of the reduced camera system: ``S`` [6n,6n] and ``rhs`` [6n]

@@ -41,6 +41,7 @@ import warp as wp
 from ..buffer import KeyframeBuffer
 from ..kernels.camera import FAR
 from ..kernels.launch import band_workers, run_row_bands
+from .variance import ClassNoise, class_scales, dense_noise, disagreement_factor
 
 
 @dataclass
@@ -53,6 +54,7 @@ class MCBAConfig:
     lm_lambda: float = 1e-4  # initial Levenberg-Marquardt damping (relative to the diagonal)
     prior_weight: float = 0.0  # weight of the inverse-depth prior, px^2 m^2 (0: no prior)
     min_disp: float = 1.0 / FAR  # 1/m: depths beyond the far plane are clamped to it
+    variance_components: bool = True  # weight the other residual classes against the dense one by their measured noise (:mod:`.variance`); False: their nominal weights
 
 
 @dataclass
@@ -60,6 +62,9 @@ class MCBAStats:
     cost: list = field(default_factory=list)  # robust cost after each accepted step (first: initial)
     keyframes: list = field(default_factory=list)
     depth_info: wp.array | None = None  # [n,C,h,w] (device) Gauss-Newton information of each inverse depth from the correspondences alone (last linearization)
+    noise: object = None  # the dense class's ClassNoise at the solution (:mod:`.variance`), or None
+    disagreement: float | None = None  # the dense class's variance factor its disagreement with the classes in absolute units gave in this solve
+    scales: list = field(default_factory=list)  # weight of each other class (keypoints, factors) relative to the dense one in this solve
     accepted: int = 0
     rejected: int = 0
     seconds_kernel: float = 0.0
@@ -73,6 +78,28 @@ class MCBA:
     def __init__(self, buffer: KeyframeBuffer, config: MCBAConfig | None = None):
         self.buf = buffer
         self.cfg = config or MCBAConfig()
+        self.noise = None  # the dense class's noise at the last solve's solution: the reference of the next solve's class weights
+        self.disagreement: list = []  # the dense class's variance factor from each solve's disagreement with the classes in absolute units (:func:`~mcgs_warp.ba.variance.disagreement_factor`)
+
+    def state_arrays(self) -> dict:
+        """The measured noise the next solves weigh their classes by, for a checkpoint."""
+        n = self.noise
+        return {"mcba.noise": np.array([] if n is None else [n.n, n.redundancy, n.sigma2, n.kappa], np.float64), "mcba.disagreement": np.array(self.disagreement, np.float64)}
+
+    def load_state_arrays(self, a: dict) -> None:
+        n = a["mcba.noise"]
+        self.noise = ClassNoise(int(n[0]), float(n[1]), float(n[2]), float(n[3])) if len(n) else None
+        self.disagreement = [float(v) for v in a["mcba.disagreement"]]
+
+    def dense_variance(self):
+        """The dense class's variance factor for the next solve: what its residuals say
+        (:attr:`noise`, correlation included) or, where larger, the median of what its
+        disagreement with the classes in absolute units said so far; None before either."""
+        own = None if self.noise is None else self.noise.effective
+        if not self.disagreement:
+            return own
+        f = float(np.median(self.disagreement))
+        return f if own is None else max(f, own)
 
     # ----------------------------------------------------------------------------------
     def _arrays(self, edges, targets, weights):
@@ -153,22 +180,36 @@ class MCBA:
         win = _Window(self.buf, cfg, keyframes, edges, targets, weights, prior)
         kp = KeypointFactors(keypoints, self.buf.rig, self.buf.stride, cfg.huber_delta, cfg.min_disp) if keypoints is not None and len(keypoints) else None
         extra = ([kp] if kp else []) + [f for f in factors if len(f)]
+        # each other class's weight against the dense one, from the noise measured at the last
+        # solution (fixed through the solve, so that LM compares costs of one function)
+        noises = [f.noise(window_poses(win.poses.numpy())) for f in extra]
+        scales = class_scales(self.dense_variance(), noises) if cfg.variance_components else [1.0] * len(extra)
+        stats.scales = scales
         lam = cfg.lm_lambda
-        current = win.cost(win.disp, win.poses) + sum(f.cost(window_poses(win.poses.numpy())) for f in extra)
+        current = win.cost(win.disp, win.poses) + sum(s * f.cost(window_poses(win.poses.numpy())) for s, f in zip(scales, extra))
         stats.cost.append(current)
         free = [s for s, k in enumerate(keyframes) if k not in fixed]
         free_idx = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in free]) if free else np.zeros(0, int)
 
-        for _ in range(cfg.iterations):
+        for it in range(cfg.iterations):
             t0 = time.perf_counter()
             win.linearize()
             stats.keyframes = keyframes
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0
             S, rhs = win.reduce(lam)  # Schur complement with the damped depth block
-            for f in extra:
+            S_dense, rhs_dense = S, rhs
+            S_abs, rhs_abs = np.zeros_like(S), np.zeros_like(rhs)  # the classes in absolute units
+            for sc, f, nz in zip(scales, extra, noises):
                 S_f, rhs_f = f.reduced_terms(window_poses(win.poses.numpy()), lam)
-                S, rhs = S + S_f, rhs + rhs_f
+                if isinstance(nz, float):
+                    S_abs, rhs_abs = S_abs + nz * S_f, rhs_abs + nz * rhs_f
+                S, rhs = S + sc * S_f, rhs + sc * rhs_f
+            if it == 0 and cfg.variance_components and len(free_idx) and S_abs.any():
+                fac = disagreement_factor(S_dense[np.ix_(free_idx, free_idx)], rhs_dense[free_idx], S_abs[np.ix_(free_idx, free_idx)], rhs_abs[free_idx])
+                if fac is not None:
+                    self.disagreement.append(fac)
+                    stats.disagreement = fac
             t2 = time.perf_counter()
             stats.seconds_reduce += t2 - t1
 
@@ -191,9 +232,9 @@ class MCBA:
                         break
                     continue
                 new_cost = win.cost(win.disp_c, win.poses_c)
-                for f in extra:
+                for sc, f in zip(scales, extra):
                     f.candidate(dxi)
-                    new_cost += f.cost(window_poses(win.poses_c.numpy()), getattr(f, "disp_c", None))
+                    new_cost += sc * f.cost(window_poses(win.poses_c.numpy()), getattr(f, "disp_c", None))
                 if new_cost <= current:
                     win.accept()
                     for f in extra:
@@ -216,6 +257,10 @@ class MCBA:
                 keypoints.disp[:] = kp.disp
         if stats.keyframes:
             stats.depth_info = win.Cd  # the window's own array: no later solve writes it
+        if cfg.variance_components:
+            stats.noise = win.noise(keyframes)
+            if stats.noise is not None:
+                self.noise = stats.noise
         return stats
 
 
@@ -380,6 +425,26 @@ class _Window:
         if self.cost_scratch is None or self.cost_scratch.shape[0] < n:
             self.cost_scratch = wp.empty(n, dtype=float, device=self.dev)
         return _total_cost(self.buf, self.cfg, self.arrays, self.E, disp, poses, prior, self.cost_scratch, self.total)
+
+    def noise(self, keyframes) -> "ClassNoise | None":
+        """The dense class's noise at the current state (:func:`~mcgs_warp.ba.variance.dense_noise`):
+        its whitened residual field, each view's depth shared with the prior by their
+        information at the last linearization."""
+        from ..kernels.ba import mcba_residual_kernel
+
+        buf, dev = self.buf, self.dev
+        res = wp.zeros((self.E, buf.h, buf.w), dtype=wp.vec2, device=dev)
+        valid = wp.zeros((self.E, buf.h, buf.w), dtype=wp.int32, device=dev)
+        inputs = [buf.rays, self.disp, self.poses, buf.T_b_c, buf.cameras, *self.arrays]
+        run_row_bands(dev, buf.h, lambda w, row0, rows: wp.launch(mcba_residual_kernel, dim=(self.E, rows, buf.w), inputs=[*inputs, row0], outputs=[res, valid], device=dev))
+        e = self.arrays[0].numpy()
+        share = 1.0
+        if self.prior is not None:
+            Cd, Cp = self.Cd.numpy(), self.cfg.prior_weight * self.prior[1].numpy()
+            seen = Cd > 0
+            if seen.any():
+                share = float(np.mean(Cd[seen] / (Cd[seen] + Cp[seen])))
+        return dense_noise(res.numpy(), valid.numpy() > 0, e[:, 0] * len(buf.rig) + e[:, 1], share)
 
     def accept(self) -> None:
         self.disp, self.disp_c = self.disp_c, self.disp

@@ -6,8 +6,8 @@ dense correspondences measure the same poses where they are many. Each pair adds
 
     r = Log(M^-1 T_a^-1 T_b)            (6-vector, (rho, phi) as DESIGN.md)
 
-with information ``Lambda`` [6,6] (the odometry's inverse covariance in the same
-unit-variance grid pixels as MCBA's residuals, times a weight) and cost ``r^T Lambda r / 2``.
+with information ``Lambda`` [6,6] (the odometry's inverse covariance, its keypoints' measured
+variance included, times a weight) and cost ``r^T Lambda r / 2``.
 Pose increments are right-multiplied in the body frame: with ``E = M^-1 T_a^-1 T_b``,
 ``d r / d xi_b = Jr^-1(r)`` and ``d r / d xi_a = -Jr^-1(r) Ad((T_a^-1 T_b)^-1)``. NumPy,
 float64, added to MCBA's reduced camera system like :mod:`.keypoint_factors`.
@@ -90,6 +90,11 @@ class RelativePoseFactors:
     def residuals(self, poses: np.ndarray) -> np.ndarray:
         """[P,6] ``Log(M^-1 T_a^-1 T_b)``."""
         return np.stack([se3_log(Mi @ invert(poses[a]) @ poses[b]) for (a, b), Mi in zip(self.pairs, self.M_inv)]).reshape(-1, 6)
+
+    def noise(self, _poses=None) -> float:
+        """1: the information is in absolute units (the odometry's covariance carries its own
+        measured variance), so MCBA weighs it by the dense class's variance alone (:mod:`.variance`)."""
+        return 1.0
 
     def cost(self, poses: np.ndarray, _disp=None) -> float:
         r = self.residuals(poses)

@@ -139,10 +139,14 @@ class KeypointOdometry:
 
     def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray) -> np.ndarray:
         """[6,6] covariance of the newest step ``T_prev^-1 T_new`` (right perturbation), from
-        the inverse of the window's reduced information (oldest pose held; unit-variance grid
-        pixels, the keypoint observations' Huber weights)."""
+        the inverse of the window's reduced information (oldest pose held; the keypoint
+        observations' Huber weights) times the variance its residuals measure (grid px^2,
+        :func:`~mcgs_warp.ba.variance.robust_variance`, the window's poses and points as the
+        unknowns; 1 when too few): absolute units, as MCBA's class weights need."""
         n = len(Pw)
         S = f.reduced_terms(Pw, 0.0)[0][6:, 6:]
+        noise = f.noise(Pw)
+        sigma2 = 1.0 if noise is None or noise.redundancy <= 6 * (n - 1) else noise.sigma2 * noise.redundancy / (noise.redundancy - 6 * (n - 1))
         try:
             cov = np.linalg.inv(S + 1e-9 * np.eye(len(S)))
         except np.linalg.LinAlgError:
@@ -151,7 +155,7 @@ class KeypointOdometry:
         J[:, -6:] = np.eye(6)
         if n > 2:  # the previous pose is free too: d(T_prev^-1 T_new) = -Ad(T_step^-1) xi_prev + xi_new
             J[:, -12:-6] = -adjoint(invert(invert(Pw[-2]) @ Pw[-1]))
-        return J @ cov @ J.T
+        return sigma2 * (J @ cov @ J.T)
 
     @property
     def recent(self) -> list:

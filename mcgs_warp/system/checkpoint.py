@@ -15,9 +15,9 @@ import numpy as np
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
 #: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
 #: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows; 7: image motion between frames instead, keypoint tracks;
-#: 8: the keypoint odometry; 9: the background's cube map, sky masks), so that
+#: 8: the keypoint odometry; 9: the background's cube map, sky masks; 10: MCBA's measured residual noise), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 9
+CHECKPOINT_FORMAT = 10
 
 
 class Checkpointing:
@@ -46,6 +46,7 @@ class Checkpointing:
             **self.graph.state_arrays(correspondence_store(path)),
             **(self.tracks.state_arrays() if self.tracks is not None else {}),
             **(self.odometry.state_arrays() if self.odometry is not None else {}),
+            **self.mcba.state_arrays(),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
             meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "lost": self.lost, "carried": self._carried, "lost_span": self._lost_span, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
@@ -126,6 +127,7 @@ class Checkpointing:
                     self.odometry.load_state_arrays(a, lambda i: self.keypoints.detect(self.seq[i].images, self.seq[i].depths if self.exact_depth else None))
                 except ValueError as e:
                     raise InputError(path, "odometry.tracks.parent", f"{e}; start without --resume") from None
+            self.mcba.load_state_arrays(a)
             try:
                 self.graph.load_state_arrays(a, correspondence_store(path))
             except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:

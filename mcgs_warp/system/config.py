@@ -62,9 +62,10 @@ class TrackingConfig:
     max_residual_ratio: float = 10.0  # ... and so is one whose final robust cost per unit of correspondence weight exceeds this times the run's median
     keypoints: bool = True  # anchor each new keyframe's pose by keypoints matched against recent keyframes (multi-camera PnP; false: the constant-velocity prediction alone) and relocalize failed keyframes by them
     keypoint_weight: float = 0.0  # confidence of one keypoint track observation in MCBA (a dense correspondence's is its DIS confidence, 0-1); 0: keypoints anchor and relocalize only (KITTI excerpt: SE(3) ATE 0.764 m at 0, 0.816 m at 1; docs/results.md)
-    odometry_weight: float = 0.0  # keypoint odometry (every frame, with keypoints): weight of its measured motion between consecutive keyframes in MCBA, times its own information (the same unit-variance grid pixels as the dense residuals). 0 (default): it only starts new keyframes and places the frames between them. 100: KITTI excerpt SE(3) ATE 1.49 -> 0.86 %, but the synthetic worlds 1.5-3x worse (docs/results.md)
+    odometry_weight: float = 1.0  # keypoint odometry (every frame, with keypoints): weight of its measured motion between consecutive keyframes in MCBA, times its information (its covariance carries its keypoints' measured variance; MCBA weighs it against the dense residuals' measured noise, mcgs_warp/ba/variance.py). 0: it only starts new keyframes and places the frames between them
     depth_weight: float = 30.0  # px^2 m^2: weight of the sensor-depth alignment residual (exact sensor depth only: a view's depth moved into another against that view's depth, so textureless surfaces with good depth still track; 0: off)
     flow_rounds: int = 2  # MCBA (+ JDSA) rounds per keyframe; between them correspondences follow the new geometry
+    variance_components: bool = MCBAConfig.variance_components  # weight keypoint tracks and odometry against the dense residuals by the noise each measurably carries (robust scale, redundancy, the dense field's correlation; mcgs_warp/ba/variance.py); false: nominal weights
 
 
 @dataclass

@@ -177,7 +177,10 @@ class KeyframeStep:
             why = f"residual {level:.3g} is {level / usual:.0f}x the run's median (tracking.max_residual_ratio {th.max_residual_ratio:g})"
         anchor = self._anchor
         self.health.append({"keyframe": k, "frame": int(self.buf.frame_index[k]), "confident": round(frac, 4), "confident_per_camera": per_camera, "residual": float(level), "accepted": int(sum(st.accepted for st, _ in rounds)),
-                            "keypoint_inliers": None if anchor is None else anchor.n_inliers, "keypoint_matches": None if anchor is None else anchor.n_matches, "failure": why})
+                            "keypoint_inliers": None if anchor is None else anchor.n_inliers, "keypoint_matches": None if anchor is None else anchor.n_matches,
+                            "dense_sigma": None if stats.noise is None else round(float(np.sqrt(stats.noise.sigma2)), 5), "dense_kappa": None if stats.noise is None else round(stats.noise.kappa, 2),
+                            "dense_disagreement": None if stats.disagreement is None else float(stats.disagreement),
+                            "class_weights": [round(x, 4) for x in stats.scales], "failure": why})
         return why
 
     def _follow_depths(self, keyframes) -> None:

@@ -225,6 +225,8 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "confident_fraction_per_camera": {c.name: _quantiles([h["confident_per_camera"][i] for h in slam.health]) for i, c in enumerate(seq.rig.cameras)} if slam.health else None,
         "keypoint_inliers": _quantiles([h["keypoint_inliers"] or 0 for h in slam.health]) if slam.keypoints is not None else None,  # per keyframe solve: PnP inliers of its keypoint pose (0: none; min, median)
         "keypoint_anchored": sum(h["keypoint_inliers"] is not None for h in slam.health) if slam.keypoints is not None else None,  # keyframe solves started from a keypoint pose (else constant velocity)
+        "dense_sigma_px": _quantiles([h["dense_sigma"] * buf.stride for h in slam.health if h.get("dense_sigma") is not None]),  # per keyframe solve: the dense residuals' measured noise (full-resolution px; min, median)
+        "dense_correlation_factor": _quantiles([h["dense_kappa"] for h in slam.health if h.get("dense_kappa") is not None]),  # ... and how many grid pixels count as one independent measurement (kappa, mcgs_warp/ba/variance.py)
         "metric_scale": slam.metric_scale,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
@@ -239,6 +241,11 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         if len(buf) >= 3:  # keyframes only: the poses the run estimated, none interpolated
             kf_traj = Trajectory(np.array(buf.timestamps), kf_poses)
             metrics.update({"ate_keyframes_rmse_m": evaluate(kf_traj, seq.groundtruth)[0].ate_rmse_m, "ate_keyframes_se3_rmse_m": evaluate(kf_traj, seq.groundtruth, with_scale=False)[0].ate_rmse_m})
+        odo = slam.odometry
+        if odo is not None and len(odo.poses) >= 3:  # the keypoint odometry alone, every frame it placed: the sparse core the dense system must not fall behind
+            fs = sorted(odo.poses)
+            ot, _, _ = evaluate(Trajectory(np.asarray(seq.timestamps, np.float64)[fs], np.stack([odo.poses[f] for f in fs])), seq.groundtruth, with_scale=False)
+            metrics.update({"ate_odometry_se3_rmse_m": ot.ate_rmse_m, "ate_odometry_se3_percent_of_path": 100.0 * ot.ate_rmse_m / max(tm.path_length_m, 1e-12)})
         metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
         # a run that claims metric scale is judged without rescaling: the plot shows what a user gets
         aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")

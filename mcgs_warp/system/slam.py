@@ -110,7 +110,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None
         self.odometry = KeypointOdometry(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None  # every frame's motion
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
-        self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0))
+        self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0, variance_components=tc.variance_components))
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
         self.mapper.sky_depth_veto = self.exact_depth  # a region exact sensor depth measures is not sky
         self.graph = FactorGraph(self.buf, self.overlap, GraphConfig(max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
