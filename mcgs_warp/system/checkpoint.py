@@ -15,7 +15,7 @@ import numpy as np
 #: What a checkpoint holds; raise it whenever save_checkpoint's arrays change meaning or names
 #: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
 #: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows; 7: image motion between frames instead, keypoint tracks;
-#: 8: the keypoint odometry; 9: the background's cube map, sky masks; 10: MCBA's measured residual noise), so that
+#: 8: the keypoint odometry; 9: the background's cube map, sky masks; 10: MCBA's measured residual noise, kept keyframes), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
 CHECKPOINT_FORMAT = 10
 
@@ -49,7 +49,7 @@ class Checkpointing:
             **self.mcba.state_arrays(),
             mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
             keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "lost": self.lost, "carried": self._carried, "lost_span": self._lost_span, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
+            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "lost": self.lost, "kept": self.kept, "carried": self._carried, "lost_span": self._lost_span, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
         )
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
@@ -148,6 +148,7 @@ class Checkpointing:
             self.seconds = meta["seconds"]
             self.health = meta["health"]
             self.lost, self._carried, self._lost_span = [int(k) for k in meta["lost"]], bool(meta["carried"]), meta["lost_span"]
+            self.kept = [int(k) for k in meta["kept"]]
             self.frame_motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
             kf_frames = [int(v) for v in a["kf_frames"]]
         except KeyError as e:

@@ -61,6 +61,11 @@ class KeyframeStep:
         for r in range(rounds):
             self.measure(refresh=fresh if r > 0 else (), guided_new=guided_new)
             edges, targets, weights = self.graph.arrays(keyframes)
+            if self.kept:  # a kept keyframe's matches to other times failed: they would pull its neighbours
+                drop = np.isin(edges[:, 0], self.kept) | np.isin(edges[:, 2], self.kept)
+                drop &= edges[:, 0] != edges[:, 2]
+                if drop.any():
+                    weights = np.where(drop[:, None, None], np.float32(0.0), weights)
             before = self.buf.get_poses()
             kp, roots = self._keypoint_problem(keyframes, before)
             geometric = self._depth_factors(keyframes, edges) + self._odometry_factors(keyframes)
@@ -340,6 +345,8 @@ class KeyframeStep:
             warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); re-matched around {how}, which no keypoint confirms")
             return False
         buf.set_poses(start[None], start=k)
+        if placed:  # held there by MCBA from now on, its correspondences to other times dropped
+            self.kept.append(k)
         warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}; again after re-matching: {second}); keyframe {k} keeps {how}")
         return placed
 

@@ -121,6 +121,7 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         self._anchor = None  # the newest keyframe's keypoint pose (PnPResult) or None
         self._geometric, self._grid = None, None  # the last solve's depth-alignment factors (window, factors); grid rays and cameras for them
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
+        self.kept: list = []  # keyframes whose dense solve failed twice where keypoints placed them: MCBA holds their keypoint pose and drops their temporal correspondences from then on (:meth:`_recover`)
         self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
@@ -219,8 +220,10 @@ class SLAM(KeyframeStep, OfflineStage, Checkpointing):
         return None
 
     def held(self, keyframes):
-        """Keyframes whose poses MCBA holds (None: the first of the window, the gauge)."""
-        return None
+        """Keyframes whose poses MCBA holds: the first of the window (the gauge) and those kept
+        at their keypoint pose after a failed dense solve (:attr:`kept`); None: the gauge alone."""
+        kept = [int(k) for k in keyframes if k in self.kept]
+        return {int(keyframes[0]), *kept} if kept else None
 
     def _filler(self, fa: int, fb: int):
         """Poses [frame -> 4x4] that place the frames between keyframes at frames ``fa`` and
