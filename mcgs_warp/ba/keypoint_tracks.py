@@ -85,7 +85,7 @@ class KeypointTracks:
                     continue
                 for i in range(self.count[(k, c)]):
                     groups.setdefault(self._find(base + i), []).append((k, c, i))
-        src_slot, src_cam, rays, disp, roots = [], [], [], [], []
+        src_slot, src_cam, rays, disp, roots, held = [], [], [], [], [], []
         o_t, o_s, o_c, o_uv = [], [], [], []
         for root, nodes in groups.items():
             if len(nodes) < 2:
@@ -117,7 +117,10 @@ class KeypointTracks:
             src_slot.append(slot[k0])
             src_cam.append(c0)
             rays.append(ray)
-            disp.append(float(ray @ ray) / proj)  # X_c projected on the ray: ray / d
+            sensed = v0.sensed is not None and bool(v0.sensed[i0])
+            held.append(sensed)
+            # X_c projected on the ray: ray / d; a sensed source keeps its own measured depth
+            disp.append(float(ray @ ray) / (float(ray @ v0.points[i0]) if sensed else proj))
             roots.append(root)
             for s, c, uv in obs:
                 o_t.append(t)
@@ -126,7 +129,7 @@ class KeypointTracks:
                 o_uv.append(uv)
         if not src_slot:
             return None, []
-        prob = KeypointProblem(np.array(src_slot), np.array(src_cam), np.array(rays), np.array(disp), np.array(o_t), np.array(o_s), np.array(o_c), np.array(o_uv, np.float64), np.full(len(o_t), self.weight))
+        prob = KeypointProblem(np.array(src_slot), np.array(src_cam), np.array(rays), np.array(disp), np.array(o_t), np.array(o_s), np.array(o_c), np.array(o_uv, np.float64), np.full(len(o_t), self.weight), np.array(held, bool))
         return prob, roots
 
     def _initial_point(self, nodes, views_of, poses, T_b_c, depth_at):

@@ -60,6 +60,7 @@ class MCBAConfig:
 @dataclass
 class MCBAStats:
     cost: list = field(default_factory=list)  # robust cost after each accepted step (first: initial)
+    dense_cost: list = field(default_factory=list)  # ... its dense part (correspondences and depth prior), by which tracking health judges a solve
     keyframes: list = field(default_factory=list)
     depth_info: wp.array | None = None  # [n,C,h,w] (device) Gauss-Newton information of each inverse depth from the correspondences alone (last linearization)
     noise: object = None  # the dense class's ClassNoise at the solution (:mod:`.variance`), or None
@@ -186,8 +187,10 @@ class MCBA:
         scales = class_scales(self.dense_variance(), noises) if cfg.variance_components else [1.0] * len(extra)
         stats.scales = scales
         lam = cfg.lm_lambda
-        current = win.cost(win.disp, win.poses) + sum(s * f.cost(window_poses(win.poses.numpy())) for s, f in zip(scales, extra))
+        dense = win.cost(win.disp, win.poses)
+        current = dense + sum(s * f.cost(window_poses(win.poses.numpy())) for s, f in zip(scales, extra))
         stats.cost.append(current)
+        stats.dense_cost.append(dense)
         free = [s for s, k in enumerate(keyframes) if k not in fixed]
         free_idx = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in free]) if free else np.zeros(0, int)
 
@@ -231,7 +234,7 @@ class MCBA:
                     if lam > 1e8:
                         break
                     continue
-                new_cost = win.cost(win.disp_c, win.poses_c)
+                new_dense = new_cost = win.cost(win.disp_c, win.poses_c)
                 for sc, f in zip(scales, extra):
                     f.candidate(dxi)
                     new_cost += sc * f.cost(window_poses(win.poses_c.numpy()), getattr(f, "disp_c", None))
@@ -241,6 +244,7 @@ class MCBA:
                         f.accept()
                     current = new_cost
                     stats.cost.append(current)
+                    stats.dense_cost.append(new_dense)
                     stats.accepted += 1
                     lam = max(lam / 3.0, 1e-9)
                     break

@@ -7,7 +7,9 @@ dense correspondences measure the same poses where they are many. Each pair adds
     r = Log(M^-1 T_a^-1 T_b)            (6-vector, (rho, phi) as DESIGN.md)
 
 with information ``Lambda`` [6,6] (the odometry's inverse covariance, its keypoints' measured
-variance included, times a weight) and cost ``r^T Lambda r / 2``.
+variance included, times a weight) and a robust cost of the Mahalanobis length
+``m = sqrt(r^T Lambda r)``: ``m^2 / 2`` up to ``huber`` (3: a 6-dof motion within its 3-sigma
+ellipsoid), linear beyond, so a motion the odometry got wrong (a bad PnP) cannot drag the window.
 Pose increments are right-multiplied in the body frame: with ``E = M^-1 T_a^-1 T_b``,
 ``d r / d xi_b = Jr^-1(r)`` and ``d r / d xi_a = -Jr^-1(r) Ad((T_a^-1 T_b)^-1)``. NumPy,
 float64, added to MCBA's reduced camera system like :mod:`.keypoint_factors`.
@@ -79,7 +81,8 @@ class RelativePoseFactors:
     """Pose factors between window slots (module docstring). ``pairs`` [P,2] slots ``(a, b)``,
     ``motions`` [P,4,4] measured ``T_a^-1 T_b``, ``information`` [P,6,6]."""
 
-    def __init__(self, pairs, motions, information):
+    def __init__(self, pairs, motions, information, huber: float = 3.0):
+        self.huber = huber
         self.pairs = np.asarray(pairs, int).reshape(-1, 2)
         self.M_inv = np.stack([invert(M) for M in motions]) if len(motions) else np.zeros((0, 4, 4))
         self.info = np.asarray(information, np.float64).reshape(-1, 6, 6)
@@ -96,9 +99,13 @@ class RelativePoseFactors:
         measured variance), so MCBA weighs it by the dense class's variance alone (:mod:`.variance`)."""
         return 1.0
 
+    def _mahalanobis(self, r: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.maximum(np.einsum("pi,pij,pj->p", r, self.info, r), 0.0))
+
     def cost(self, poses: np.ndarray, _disp=None) -> float:
-        r = self.residuals(poses)
-        return float(0.5 * np.einsum("pi,pij,pj->", r, self.info, r))
+        m = self._mahalanobis(self.residuals(poses))
+        k = self.huber
+        return float(np.sum(np.where(m <= k, 0.5 * m * m, k * (m - 0.5 * k))))
 
     def jacobians(self, poses: np.ndarray):
         """Residuals [P,6] and their Jacobians w.r.t. pose a and pose b [P,6,6]."""
@@ -115,11 +122,13 @@ class RelativePoseFactors:
         n = len(poses)
         S, rhs = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
         r, Ja, Jb = self.jacobians(poses)
+        m = self._mahalanobis(r)
+        W = np.where(m <= self.huber, 1.0, self.huber / np.maximum(m, 1e-300))  # Huber's IRLS weight
         for p, (a, b) in enumerate(self.pairs):
             J = np.concatenate([Ja[p], Jb[p]], axis=1)  # [6,12]
             idx = np.concatenate([np.arange(6 * a, 6 * a + 6), np.arange(6 * b, 6 * b + 6)])
-            S[np.ix_(idx, idx)] += J.T @ self.info[p] @ J
-            rhs[idx] -= J.T @ self.info[p] @ r[p]
+            S[np.ix_(idx, idx)] += W[p] * J.T @ self.info[p] @ J
+            rhs[idx] -= W[p] * J.T @ self.info[p] @ r[p]
         return S, rhs
 
     def candidate(self, dxi) -> None:  # no variables of its own

@@ -32,6 +32,7 @@ class ViewKeypoints:
     points: np.ndarray  # [M,3] float64 camera-frame points (m), NaN where the depth is unknown
     #: stereo matches with the rig's other cameras at the same time: camera -> (indices here, indices there)
     partners: dict = field(default_factory=dict)
+    sensed: np.ndarray | None = None  # [M] bool: the depth is exact sensor depth (bundle adjustment holds it; stereo depth it refines)
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -168,7 +169,7 @@ class KeypointDetector:
                 ok = z > 0
                 pts[ok] = rays[ok] * z[ok, None]
             norm = np.linalg.norm(rays, axis=1, keepdims=True)
-            views.append(ViewKeypoints(uv, rays, rays / np.maximum(norm, 1e-12), desc, pts))
+            views.append(ViewKeypoints(uv, rays, rays / np.maximum(norm, 1e-12), desc, pts, sensed=np.isfinite(pts[:, 0])))
         for a, b in self.pairs:
             self._stereo(views, a, b)
         return views

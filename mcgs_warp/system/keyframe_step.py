@@ -170,7 +170,7 @@ class KeyframeStep:
         th = self.cfg.tracking
         frac, per_camera = self._confident_fractions(k)
         stats, weight = rounds[-1]
-        level = stats.cost[-1] / max(weight, 1e-9) if stats.cost else float("nan")
+        level = stats.dense_cost[-1] / max(weight, 1e-9) if stats.dense_cost else float("nan")  # the other classes' weights change over a run
         healthy = [h["residual"] for h in self.health if not h["failure"] and np.isfinite(h["residual"])]
         usual = float(np.median(healthy)) if len(healthy) >= 3 else None
         why = None

@@ -18,7 +18,7 @@ def test_odometry_measures_every_frames_motion_with_a_covariance(synthetic_seq):
     n = len(seq)
     for a, b in ((0, 1), (2, 5), (0, n - 1)):
         dt, dr = pose_distance(odo.relative(a, b), invert(gt[a]) @ gt[b])
-        assert dt < 0.008 and dr < np.radians(0.1), (a, b, dt, dr)  # m, rad (the rig moves 0.15 m per frame)
+        assert dt < 0.004 and dr < np.radians(0.1), (a, b, dt, dr)  # m, rad (the rig moves 0.15 m per frame)
         assert odo.span_tracked(a, b)
         cov = odo.relative_covariance(a, b)
         assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
@@ -77,3 +77,21 @@ def test_odometry_keeps_only_its_recent_frames(synthetic_seq):
     assert sorted(odo.views) == odo.recent == list(range(len(seq) - 5, len(seq)))
     assert {k for k, _ in odo.tracks.base} == set(odo.recent)
     assert len(odo.poses) == len(odo.step_cov) + 1 == len(seq)
+
+
+def test_exact_depth_holds_the_odometrys_scale(synthetic_seq):
+    """With exact sensor depth each step's length is within 0.5 % of the truth, and its error
+    within 5 sigma of its own covariance: the window's bundle adjustment holds the measured
+    depths (left free, it traded them for the pixel noise and every step came out 1.5-3.4 %
+    short, 4-6 mm against a claimed 0.5 mm)."""
+    seq = synthetic_seq
+    odo = KeypointOdometry(seq.rig, camera_overlap(seq.rig, stride=8))
+    gt = seq.groundtruth.poses
+    for i in range(len(seq)):
+        odo.track(i, seq[i].images, seq[i].depths)
+    for i in range(1, len(seq)):
+        true = invert(gt[i - 1]) @ gt[i]
+        ratio = np.linalg.norm(odo.relative(i - 1, i)[:3, 3]) / np.linalg.norm(true[:3, 3])
+        err = (invert(true) @ odo.relative(i - 1, i))[:3, 3]
+        sd = np.sqrt(np.trace(odo.relative_covariance(i - 1, i)[:3, :3]))
+        assert abs(ratio - 1) < 0.005 and np.linalg.norm(err) < 5 * sd, (i, ratio, err, sd)
