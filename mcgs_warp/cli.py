@@ -357,6 +357,48 @@ def cmd_view(args) -> int:
     return 0
 
 
+#: commands that run Warp kernels in this process (``batch`` runs them in its children)
+WARP_COMMANDS = ("run", "map", "demo", "synth", "export")
+CUDA_DRIVER_LINE = "Could not find or load the NVIDIA CUDA driver"
+
+
+def init_warp(device=None, quiet: bool = True) -> str:
+    """Initialize Warp and say once, on stderr, which device runs the kernels. Warp's native
+    start-up prints a CUDA-driver warning on every machine without a GPU; ``quiet`` keeps
+    that line (and only that line) from the terminal. Returns the device's name."""
+    import os
+    import tempfile
+
+    import warp as wp
+
+    if quiet:
+        sys.stderr.flush()
+        with tempfile.TemporaryFile(mode="w+b") as tmp:
+            saved = os.dup(2)
+            os.dup2(tmp.fileno(), 2)
+            try:
+                wp.init()
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+            tmp.seek(0)
+            rest = [line for line in tmp.read().decode(errors="replace").splitlines() if line.strip() and CUDA_DRIVER_LINE not in line and line.strip() != "available."]
+        for line in rest:
+            print(line, file=sys.stderr)
+    else:
+        wp.init()
+    try:
+        name = str(wp.get_device(device))
+    except (ValueError, RuntimeError):
+        from .errors import InputError
+
+        devices = ", ".join(str(d) for d in wp.get_devices())
+        raise InputError(None, "--device", f"expected a Warp device of this machine ({devices}), got {device!r}") from None
+    why = "" if wp.is_cuda_available() else " (no CUDA driver: GPU execution is not available)"
+    print(f"mcgs-slam: Warp kernels run on {name}{why}", file=sys.stderr)
+    return name
+
+
 def main(argv: list[str] | None = None) -> int:
     from .errors import InputError
 
@@ -370,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
 
         wp.config.log_level = wp.LOG_WARNING  # no start-up banner or per-module load lines
     try:
+        if args.command in WARP_COMMANDS:
+            init_warp(getattr(args, "device", None), quiet=not args.debug)
         return args.func(args)
     except InputError as e:
         if args.debug:

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..data.sequence import depth_to_mm
 from ..data.trajectory import Trajectory, write_tum
+from ..errors import InputError
 from ..eval.metrics import psnr, ssim
 from ..eval.plots import plot_mapping, plot_trajectory
 from ..eval.trajectory import associate, evaluate, umeyama
@@ -232,7 +233,16 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     }
     gt_xyz, times = None, traj.timestamps
     aligned, label = traj.positions, "ATE"
-    if seq.groundtruth is not None:
+    evaluable = seq.groundtruth is not None
+    if evaluable:
+        try:
+            evaluate(traj, seq.groundtruth)
+        except InputError as e:  # too few poses to align (a 2-keyframe scene): the rest of the run still counts
+            from ..data.sequence import warn
+
+            warn(None, f"trajectory not evaluated: {e}; metrics.json holds the rest")
+            evaluable = False
+    if evaluable:
         tm, aligned, gt_xyz, times = evaluate(traj, seq.groundtruth, return_timestamps=True)
         se3, se3_aligned, _ = evaluate(traj, seq.groundtruth, with_scale=False)
         # RPE as a user compares it: metric runs as they are, others after the Sim(3) scale
@@ -244,8 +254,11 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         odo = slam.odometry
         if odo is not None and len(odo.poses) >= 3:  # the keypoint odometry alone, every frame it placed: the sparse core the dense system must not fall behind
             fs = sorted(odo.poses)
-            ot, _, _ = evaluate(Trajectory(np.asarray(seq.timestamps, np.float64)[fs], np.stack([odo.poses[f] for f in fs])), seq.groundtruth, with_scale=False)
-            metrics.update({"ate_odometry_se3_rmse_m": ot.ate_rmse_m, "ate_odometry_se3_percent_of_path": 100.0 * ot.ate_rmse_m / max(tm.path_length_m, 1e-12)})
+            try:
+                ot, _, _ = evaluate(Trajectory(np.asarray(seq.timestamps, np.float64)[fs], np.stack([odo.poses[f] for f in fs])), seq.groundtruth, with_scale=False)
+                metrics.update({"ate_odometry_se3_rmse_m": ot.ate_rmse_m, "ate_odometry_se3_percent_of_path": 100.0 * ot.ate_rmse_m / max(tm.path_length_m, 1e-12)})
+            except InputError:
+                pass  # too few of its frames match the ground truth
         metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
         # a run that claims metric scale is judged without rescaling: the plot shows what a user gets
         aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")

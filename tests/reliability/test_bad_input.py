@@ -142,3 +142,19 @@ def test_run_config_rejects_an_opacity_outside_zero_and_one(tmp_path, value, mes
         load_run_config(path)
     path.write_text("mapping:\n  fill_opacity: 0.5\n")
     assert load_run_config(path).mapping.fill_opacity == 0.5
+
+
+def test_a_cpu_run_names_its_device_once_without_warps_driver_warning(tmp_path):
+    """Warp's native start-up prints a CUDA-driver warning on every machine without a GPU: the
+    command line keeps that line out and says once which device runs; a device the machine
+    lacks is one clear error."""
+    import warp as wp
+
+    res = cli("synth", "--out", tmp_path / "s", "--frames", 2, "--cameras", 1)
+    assert res.returncode == 0, res.stderr
+    assert "Could not find or load the NVIDIA CUDA driver" not in res.stderr
+    assert res.stderr.count("Warp kernels run on") == 1, res.stderr
+    if not wp.is_cuda_available():
+        assert "Warp kernels run on cpu (no CUDA driver" in res.stderr
+        bad = cli("--device", "cuda:0", "synth", "--out", tmp_path / "t", "--frames", 2, "--cameras", 1)
+        assert bad.returncode == 2 and "--device: expected a Warp device of this machine (cpu), got 'cuda:0'" in bad.stderr, bad.stderr

@@ -75,3 +75,24 @@ def test_a_metric_run_far_from_scale_one_is_told_to_check_its_depth_unit():
     assert scale_warning(True, 1.05) is None and scale_warning(False, 0.2) is None
     why = scale_warning(True, 0.2)  # TUM depth (5000 per metre) read as millimetres: 5x too far
     assert "0.200" in why and "millimetres" in why and "1/5000" in why
+
+
+def test_a_run_with_too_few_ground_truth_poses_still_writes_its_metrics(tmp_path, capfd):
+    """Ground truth that matches only 2 of the run's poses (a 2-keyframe nuScenes scene): one
+    warning, metrics.json with everything but the trajectory figures, and the command exits 0."""
+    import json
+    import subprocess
+    import sys
+
+    from mcgs_warp.data.synthetic import generate
+
+    generate(tmp_path / "data", n_cameras=1, n_frames=3, seed=2, progress=False, depth="exact")
+    gt = (tmp_path / "data" / "groundtruth.txt").read_text().splitlines()
+    rows = [line for line in gt if line.strip() and not line.startswith("#")]
+    (tmp_path / "data" / "groundtruth.txt").write_text("\n".join(rows[:2]) + "\n")
+    (tmp_path / "fast.yaml").write_text("tracking:\n  mcba_iterations: 1\nmapping:\n  iterations_per_keyframe: 1\nrefinement:\n  iterations: 0\n  global_ba_iterations: 0\noutput:\n  renders: 0\n")
+    res = subprocess.run([sys.executable, "-m", "mcgs_warp", "run", "--data", tmp_path / "data", "--out", tmp_path / "run", "--config", tmp_path / "fast.yaml"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("trajectory not evaluated: only 2 estimated poses match") == 1, res.stderr
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["ate_rmse_m"] is None and "ate_se3_rmse_m" not in m and m["psnr_db"] > 10 and m["n_frames"] == 3
