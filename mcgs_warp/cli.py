@@ -363,9 +363,9 @@ CUDA_DRIVER_LINE = "Could not find or load the NVIDIA CUDA driver"
 
 
 def init_warp(device=None, quiet: bool = True) -> str:
-    """Initialize Warp and say once, on stderr, which device runs the kernels. Warp's native
-    start-up prints a CUDA-driver warning on every machine without a GPU; ``quiet`` keeps
-    that line (and only that line) from the terminal. Returns the device's name."""
+    """Initialize Warp. Warp's native start-up prints a CUDA-driver warning on every machine
+    without a GPU; ``quiet`` keeps that line (and only that line) from the terminal. Returns
+    the device that runs the kernels, in words (``main`` says it once, when the command is done)."""
     import os
     import tempfile
 
@@ -395,8 +395,7 @@ def init_warp(device=None, quiet: bool = True) -> str:
         devices = ", ".join(str(d) for d in wp.get_devices())
         raise InputError(None, "--device", f"expected a Warp device of this machine ({devices}), got {device!r}") from None
     why = "" if wp.is_cuda_available() else " (no CUDA driver: GPU execution is not available)"
-    print(f"mcgs-slam: Warp kernels run on {name}{why}", file=sys.stderr)
-    return name
+    return f"{name}{why}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -412,9 +411,11 @@ def main(argv: list[str] | None = None) -> int:
 
         wp.config.log_level = wp.LOG_WARNING  # no start-up banner or per-module load lines
     try:
-        if args.command in WARP_COMMANDS:
-            init_warp(getattr(args, "device", None), quiet=not args.debug)
-        return args.func(args)
+        device = init_warp(getattr(args, "device", None), quiet=not args.debug) if args.command in WARP_COMMANDS else None
+        rc = args.func(args)
+        if device is not None and not rc:  # said once, after the work (an error stays one line)
+            print(f"mcgs-slam {args.command}: Warp kernels ran on {device}", file=sys.stderr)
+        return rc
     except InputError as e:
         if args.debug:
             raise
