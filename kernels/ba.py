@@ -195,6 +195,39 @@ def mcba_linearize_kernel(
     Epix[e, y, x, 1] = W * (JjT * Jd)
 
 
+@wp.func
+def pixel_residual(
+    rays: wp.array(dtype=wp.vec3, ndim=3),
+    disp: wp.array(dtype=float, ndim=4),
+    poses: wp.array(dtype=wp.transform),
+    T_b_c: wp.array(dtype=wp.transform),
+    cameras: wp.array(dtype=Camera),
+    edge: wp.vec4i,
+    targets: wp.array(dtype=wp.vec2, ndim=3),
+    weights: wp.array(dtype=float, ndim=3),
+    e: int,
+    y: int,
+    x: int,
+):
+    """Whether grid pixel (y, x) of edge ``e`` has a residual, its confidence and its residual
+    ``target - uv`` (grid px): the rule :func:`mcba_linearize_kernel` applies too."""
+    zero = wp.vec2(0.0, 0.0)
+    cam_i = cameras[edge[1]]
+    if x >= cam_i.width or y >= cam_i.height:
+        return False, 0.0, zero
+    target = targets[e, y, x]
+    wgt = residual_weight(weights[e, y, x], target)
+    d = disp[edge[0], edge[1], y, x]
+    if wgt <= 0.0 or d <= 0.0:
+        return False, 0.0, zero
+    cam_j = cameras[edge[3]]
+    X_ci, X_bi, X_bj, X_cj = edge_geometry(rays[edge[1], y, x], d, poses[edge[0]], poses[edge[2]], T_b_c[edge[1]], T_b_c[edge[3]])
+    uv = camera_project(cam_j, X_cj)
+    if not residual_valid(cam_j, X_cj, uv):
+        return False, 0.0, zero
+    return True, wgt, target - uv
+
+
 @wp.kernel
 def mcba_cost_kernel(
     rays: wp.array(dtype=wp.vec3, ndim=3),
@@ -211,24 +244,9 @@ def mcba_cost_kernel(
 ):
     """Robust cost only (for accepting or rejecting an LM step)."""
     e, y, x = wp.tid()
-    y = y + row0
-    edge = edges[e]
-    cam_i = cameras[edge[1]]
-    if x >= cam_i.width or y >= cam_i.height:
-        return
-    target = targets[e, y, x]
-    wgt = residual_weight(weights[e, y, x], target)
-    d = disp[edge[0], edge[1], y, x]
-    if wgt <= 0.0 or d <= 0.0:
-        return
-    cam_j = cameras[edge[3]]
-    X_ci, X_bi, X_bj, X_cj = edge_geometry(rays[edge[1], y, x], d, poses[edge[0]], poses[edge[2]], T_b_c[edge[1]], T_b_c[edge[3]])
-    uv = camera_project(cam_j, X_cj)
-    if not residual_valid(cam_j, X_cj, uv):
-        return
-    r = target - uv
-    wp.atomic_add(cost, e, huber_cost(wp.sqrt(wgt) * wp.length(r), huber_delta))
-
+    ok, wgt, r = pixel_residual(rays, disp, poses, T_b_c, cameras, edges[e], targets, weights, e, y + row0, x)
+    if ok:
+        wp.atomic_add(cost, e, huber_cost(wp.sqrt(wgt) * wp.length(r), huber_delta))
 
 
 @wp.kernel
@@ -246,27 +264,14 @@ def mcba_residual_kernel(
     valid: wp.array(dtype=wp.int32, ndim=3),  # [E,h,w] out: 1 where the residual counts in the cost
 ):
     """Per-pixel whitened residuals of the dense class (its noise and correlation are
-    estimated from them: ``mcgs_warp.ba.variance``); ``valid`` is 0 exactly where the cost
-    kernel skips the pixel."""
+    estimated from them: ``mcgs_warp.ba.variance``); ``valid`` is 1 exactly where the cost
+    kernel counts the pixel."""
     e, y, x = wp.tid()
     y = y + row0
-    edge = edges[e]
-    cam_i = cameras[edge[1]]
-    if x >= cam_i.width or y >= cam_i.height:
-        return
-    valid[e, y, x] = 0
-    target = targets[e, y, x]
-    wgt = residual_weight(weights[e, y, x], target)
-    d = disp[edge[0], edge[1], y, x]
-    if wgt <= 0.0 or d <= 0.0:
-        return
-    cam_j = cameras[edge[3]]
-    X_ci, X_bi, X_bj, X_cj = edge_geometry(rays[edge[1], y, x], d, poses[edge[0]], poses[edge[2]], T_b_c[edge[1]], T_b_c[edge[3]])
-    uv = camera_project(cam_j, X_cj)
-    if not residual_valid(cam_j, X_cj, uv):
-        return
-    residual[e, y, x] = wp.sqrt(wgt) * (target - uv)
-    valid[e, y, x] = 1
+    ok, wgt, r = pixel_residual(rays, disp, poses, T_b_c, cameras, edges[e], targets, weights, e, y, x)
+    valid[e, y, x] = wp.where(ok, 1, 0)
+    residual[e, y, x] = wp.sqrt(wgt) * r
+
 
 # ---------------------------------------------------------------------------------------
 # Sparse Schur reduction (paper eq. 10) over a window of n keyframes held in slots 0..n-1.

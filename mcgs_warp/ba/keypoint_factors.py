@@ -11,7 +11,8 @@ to the poses its observations touch: the depth block stays diagonal and is elimi
 the same Schur complement (eq. 10) before the reduced camera system is solved; the terms
 here are added to it. A track whose source depth is exact sensor depth keeps it (no unknown):
 left free, the window's depths and poses trade scale for a better fit of pixel noise (the
-keypoint odometry's steps came out 1.5-3.4 % short with exact depth on clean images). NumPy, float64: a window holds a few thousand observations.
+keypoint odometry's steps came out 1.5-3.4 % short with exact depth on clean images).
+NumPy, float64: a window holds a few thousand observations.
 
 Pose increments are right-multiplied in the body frame, ``(rho, phi)`` (DESIGN.md).
 """

@@ -168,17 +168,16 @@ def disagreement_factor(S_dense: np.ndarray, rhs_dense: np.ndarray, S_abs: np.nd
     return 10.0 ** (0.5 * (lo + hi))
 
 
-def class_scales(reference, classes: list) -> list:
-    """Weights [k] that multiply each class's information relative to the dense reference
-    (a :class:`ClassNoise` or its variance factor as a number):
-    ``reference.effective / classes[k].sigma2`` (a class given as a number is already in
-    absolute units: its weight is ``reference.effective`` times it); 1 where either is
-    unknown; clipped to :data:`SCALE_RANGE`."""
+def class_scales(reference: float | None, classes: list) -> list:
+    """Weights [k] that multiply each class's information relative to the dense class, whose
+    variance factor is ``reference``: ``reference / classes[k].sigma2`` for a
+    :class:`ClassNoise`, ``reference * classes[k]`` for a class in absolute units (given as
+    a number); 1 where either is unknown; clipped to :data:`SCALE_RANGE`."""
     out = []
     for c in classes:
         if reference is None or c is None:
             out.append(1.0)
             continue
-        s = (reference if isinstance(reference, float) else reference.effective) * (float(c) if isinstance(c, (int, float)) else 1.0 / c.sigma2)
+        s = reference * (float(c) if isinstance(c, (int, float)) else 1.0 / c.sigma2)
         out.append(float(np.clip(s, *SCALE_RANGE)))
     return out

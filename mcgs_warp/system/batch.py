@@ -21,7 +21,7 @@ Ray is an optional dependency (``pip install "mcgs_warp[cluster]"``), imported o
 only when a batch starts. On a cluster every node sees the inputs and ``OUT`` under the same
 paths (a shared file system) and has this package installed.
 
-``python -m mcgs_warp.system.batch ARGS`` is the child process: ``mcgs-slam ARGS`` that ends
+``python -m mcgs_warp.system.batch_child ARGS`` is the child process: ``mcgs-slam ARGS`` that ends
 when the Ray worker that started it ends (Linux), so an interrupted batch leaves no run behind.
 """
 
@@ -332,7 +332,7 @@ def _peak_mb(usage) -> float:
 
 def run_one(task: dict) -> dict:
     """Run one sequence (a Ray task's body): skip it if its outputs are complete for
-    ``task["key"]``, else run ``python -m mcgs_warp.system.batch ARGV`` with the output in
+    ``task["key"]``, else run ``python -m mcgs_warp.system.batch_child ARGV`` with the output in
     ``task["log"]``, and on success write ``batch.json``. Returns ``{name, status: ok | skipped
     | failed, metrics (dict or None), seconds (wall time of the run), peak_rss_mb, error}``."""
     out, log = Path(task["out"]), Path(task["log"])
@@ -345,7 +345,7 @@ def run_one(task: dict) -> dict:
     env = dict(os.environ, PYTHONUNBUFFERED="1")  # the log keeps stdout and stderr in order, so its last line is the error
     t0 = time.perf_counter()
     with open(log, "wb") as f:
-        proc = subprocess.Popen([sys.executable, "-m", __name__, *task["argv"]], stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        proc = subprocess.Popen([sys.executable, "-m", "mcgs_warp.system.batch_child", *task["argv"]], stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         try:
             _, status, usage = os.wait4(proc.pid, 0)  # this child's own peak memory (a reused worker's RUSAGE_CHILDREN holds every earlier run's)
         except BaseException:
@@ -382,21 +382,6 @@ def run_one(task: dict) -> dict:
         json.dump(record, f, indent=2)
     result.update(status="ok", metrics=metrics)
     return result
-
-
-def _child_main(argv: list[str]) -> int:
-    """``mcgs-slam ARGV``, ended by SIGTERM when the process that started it (a Ray worker) ends."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        with contextlib.suppress(OSError, AttributeError):
-            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
-        if os.getppid() == 1:  # the parent ended before the line above
-            return 130
-    from ..cli import main
-
-    return main(argv)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -641,6 +626,3 @@ def write_summary(out, results: list[dict], options: RunOptions | None = None) -
         f.write(summary_markdown(rows, options))
     save_png(summary_figure(rows), out / "summary.png")
 
-
-if __name__ == "__main__":
-    sys.exit(_child_main(sys.argv[1:]))

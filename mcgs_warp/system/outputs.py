@@ -233,17 +233,16 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     }
     gt_xyz, times = None, traj.timestamps
     aligned, label = traj.positions, "ATE"
-    evaluable = seq.groundtruth is not None
-    if evaluable:
+    sim3 = None
+    if seq.groundtruth is not None:
         try:
-            evaluate(traj, seq.groundtruth)
+            sim3 = evaluate(traj, seq.groundtruth, return_timestamps=True)
         except InputError as e:  # too few poses to align (a 2-keyframe scene): the rest of the run still counts
             from ..data.sequence import warn
 
             warn(None, f"trajectory not evaluated: {e}; metrics.json holds the rest")
-            evaluable = False
-    if evaluable:
-        tm, aligned, gt_xyz, times = evaluate(traj, seq.groundtruth, return_timestamps=True)
+    if sim3 is not None:
+        tm, aligned, gt_xyz, times = sim3
         se3, se3_aligned, _ = evaluate(traj, seq.groundtruth, with_scale=False)
         # RPE as a user compares it: metric runs as they are, others after the Sim(3) scale
         rpe = se3 if slam.metric_scale else tm
