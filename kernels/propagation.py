@@ -4,10 +4,10 @@ multi-view geometric consistency.
 :func:`propagate_depth` reuses the idea with per-pixel hypotheses instead of planes: once
 poses are known, a dense depth map is improved by one PatchMatch-style pass (Bleyer et al.,
 BMVC 2011; Galliani et al., ICCV 2015): every pixel tries its neighbours' depths and small
-changes of its own (:func:`candidate_warp_kernel`), scored by ZNCC with separable window
-sums (:func:`window_rows_kernel`, :func:`window_zncc_kernel`), and keeps the best
+changes of its own (:func:`candidate_warp_kernel`), scored by the sweep's ZNCC over a window
+sliding down each column (:func:`~.sweep.zncc_cost_kernel`), and keeps the best
 (:func:`candidate_select_kernel`); at depth edges the best few are re-scored with
-colour-adaptive support weights (:func:`rescore_pick_kernel`, :func:`adaptive_window_kernel`,
+colour-adaptive support weights (:func:`rescore_pick_kernel`, :func:`support_weights_kernel`, :func:`adaptive_window_kernel`,
 :func:`rescore_select_kernel`; Yoon & Kweon, PAMI 2006). :func:`consistent_depth` then keeps only the depths that
 other views' depth maps confirm (geometric consistency, as multi-view stereo fusion does:
 Schönberger et al., ECCV 2016; Yao et al., ECCV 2018), :func:`depth_agreement_kernel`.
@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from .camera import FAR, NEAR, Camera, camera_in_domain, camera_project
-from .sweep import NO_COST, nearest_pixel, sample_bilinear, zncc_cost
+from .sweep import NO_COST, nearest_pixel, sample_bilinear, zncc_cost, zncc_cost_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -75,84 +75,17 @@ def candidate_warp_kernel(
     warped[k, y, x] = value
 
 
-#: Window sums of the propagation's ZNCC: in-image count, valid count, a, a^2, b, b^2, ab.
-window_sums = wp.types.vector(length=7, dtype=float)
-
-
 @wp.kernel
-def window_rows_kernel(
-    ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
-    warped: wp.array(dtype=float, ndim=3),  # [D,H,W] one source
-    radius: int,
-    row0: int,
-    rows: wp.array(dtype=window_sums, ndim=3),  # [D,H,W]
-):
-    """Horizontal ``2r+1`` sums per pixel of :data:`window_sums` (a: reference, b: warped
-    source; the moments over valid samples only). First pass of a separable window sum:
-    the ZNCC of :func:`window_zncc_kernel` then costs O(r) per pixel, not O(r^2)."""
-    k, r, x = wp.tid()
-    y = r + row0
-    W = ref.shape[1]
-    t = float(0.0)
-    n = float(0.0)
-    sa = float(0.0)
-    saa = float(0.0)
-    sb = float(0.0)
-    sbb = float(0.0)
-    sab = float(0.0)
-    for dx in range(-radius, radius + 1):
-        xx = x + dx
-        if xx >= 0 and xx < W:
-            t += 1.0
-            b = warped[k, y, xx]
-            if b >= 0.0:
-                a = ref[y, xx]
-                n += 1.0
-                sa += a
-                saa += a * a
-                sb += b
-                sbb += b * b
-                sab += a * b
-    rows[k, y, x] = window_sums(t, n, sa, saa, sb, sbb, sab)
-
-
-@wp.kernel
-def window_zncc_kernel(
-    rows: wp.array(dtype=window_sums, ndim=3),  # [D,H,W] from window_rows_kernel
-    radius: int,
-    min_std: float,
+def fold_lowest_kernel(
+    cost: wp.array(dtype=float, ndim=3),  # [D,H,W] one source's costs
     row0: int,
     m1: wp.array(dtype=float, ndim=3),  # [D,H,W] lowest cost over the sources so far
     m2: wp.array(dtype=float, ndim=3),  # [D,H,W] second lowest
 ):
-    """Second pass: vertical sums, ``1 - ZNCC`` of the window (``NO_COST`` unless every
-    in-image pixel of the window is valid and both windows have texture), folded into the
-    two lowest costs per candidate (sources come one launch at a time)."""
+    """Fold one source's costs into the two lowest per candidate and pixel."""
     k, r, x = wp.tid()
     y = r + row0
-    H = rows.shape[1]
-    t = float(0.0)  # scalar sums: vector accumulators made these loops 1.5-4x slower on the CPU
-    n = float(0.0)
-    sa = float(0.0)
-    saa = float(0.0)
-    sb = float(0.0)
-    sbb = float(0.0)
-    sab = float(0.0)
-    for dy in range(-radius, radius + 1):
-        yy = y + dy
-        if yy >= 0 and yy < H:
-            v = rows[k, yy, x]
-            t += v[0]
-            n += v[1]
-            sa += v[2]
-            saa += v[3]
-            sb += v[4]
-            sbb += v[5]
-            sab += v[6]
-    c = float(NO_COST)
-    if n >= t and n > 1.0:
-        c = zncc_cost(n, sa, saa, sb, sbb, sab, min_std)
-    keep_two_lowest(c, m1, m2, k, y, x)
+    keep_two_lowest(cost[k, y, x], m1, m2, k, y, x)
 
 
 @wp.kernel
@@ -197,8 +130,8 @@ def rescore_pick_kernel(
     picked: wp.array(dtype=wp.int32, ndim=3),  # [K,H,W] candidate indices, -1 = none
 ):
     """Per pixel at a depth edge whose own depth some source measured: its own depth
-    (candidate 0) and the ``K - 1`` other candidates of lowest separable cost (as
-    :func:`candidate_select_kernel` ranks them, so the separable winner is among them), to be
+    (candidate 0) and the ``K - 1`` other candidates of lowest plain-window cost (as
+    :func:`candidate_select_kernel` ranks them, so the plain winner is among them), to be
     re-scored by :func:`adaptive_window_kernel`."""
     y, x = wp.tid()
     K = picked.shape[0]
@@ -227,9 +160,53 @@ def rescore_pick_kernel(
 
 
 @wp.kernel
+def support_weights_kernel(
+    ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
+    colour: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] RGB reference in [0,1]
+    radius: int,
+    gamma_colour: float,  # L1 RGB difference at which a window pixel's weight falls by e
+    gamma_distance: float,  # px, likewise for its distance from the centre
+    at: wp.array(dtype=wp.int32, ndim=2),  # [H,W] 1 where weights are wanted
+    weights: wp.array(dtype=float, ndim=3),  # [H,W,(2r+1)^2] row-major window; 0 outside the image
+    moments: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] weighted (sum w, sum w a, sum w a^2) over the window
+):
+    """Adaptive support weights (Yoon & Kweon, PAMI 2006) of each wanted pixel's window: its
+    colour likeness to the centre and its distance, so that at a depth edge the surface the
+    centre belongs to decides, not the one across the edge (the fattening of plain windows).
+    They depend on the reference alone: computed once, they serve every candidate and source
+    of :func:`adaptive_window_kernel`, and so do the reference's weighted moments."""
+    y, x = wp.tid()
+    if at[y, x] == 0:
+        return
+    H = ref.shape[0]
+    W = ref.shape[1]
+    centre = colour[y, x]
+    t = float(0.0)
+    sa = float(0.0)
+    saa = float(0.0)
+    o = int(0)
+    for dy in range(-radius, radius + 1):
+        yy = y + dy
+        for dx in range(-radius, radius + 1):
+            xx = x + dx
+            w = float(0.0)
+            if yy >= 0 and yy < H and xx >= 0 and xx < W:
+                d = colour[yy, xx] - centre
+                w = wp.exp(-(wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2])) / gamma_colour - wp.sqrt(float(dx * dx + dy * dy)) / gamma_distance)
+                a = ref[yy, xx]
+                t += w
+                sa += w * a
+                saa += w * a * a
+            weights[y, x, o] = w
+            o += 1
+    moments[y, x] = wp.vec3(t, sa, saa)
+
+
+@wp.kernel
 def adaptive_window_kernel(
     ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
-    colour: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] RGB reference in [0,1]: the support weights
+    weights: wp.array(dtype=float, ndim=3),  # [H,W,(2r+1)^2] from support_weights_kernel
+    moments: wp.array(dtype=wp.vec3, ndim=2),  # [H,W] from support_weights_kernel
     ref_rays: wp.array(dtype=wp.vec3, ndim=2),  # [H,W]
     depth: wp.array(dtype=float, ndim=2),  # [H,W] m
     candidates: wp.array(dtype=wp.vec3),  # [D]
@@ -239,17 +216,15 @@ def adaptive_window_kernel(
     T_src_ref: wp.array(dtype=wp.mat44),  # [S]
     s: int,  # the source of this launch
     radius: int,
-    gamma_colour: float,  # L1 RGB difference at which a window pixel's weight falls by e
-    gamma_distance: float,  # px, likewise for its distance from the centre
     min_std: float,
     row0: int,
     a1: wp.array(dtype=float, ndim=3),  # [K,H,W] lowest cost over the sources so far
     a2: wp.array(dtype=float, ndim=3),  # [K,H,W] second lowest
 ):
-    """``1 - ZNCC`` of a picked candidate with adaptive support weights (Yoon & Kweon, PAMI
-    2006): the whole window at the candidate's depth, each pixel weighted by its colour
-    likeness to the centre and its distance, so that at a depth edge the surface the centre
-    belongs to decides, not the one across the edge (the fattening of plain windows)."""
+    """``1 - ZNCC`` of a picked candidate with adaptive support weights: the whole window at
+    the candidate's depth, each pixel weighted as :func:`support_weights_kernel` says;
+    ``NO_COST`` once samples outside the source carry more than 0.1 % of the window's weight
+    (the moments then count the valid samples only)."""
     j, r, x = wp.tid()
     y = r + row0
     k = picked[j, y, x]
@@ -261,34 +236,36 @@ def adaptive_window_kernel(
     z = candidate_depth(depth, cand, y, x)
     cam = src_cams[s]
     T = T_src_ref[s]
-    centre = colour[y, x]
-    t = float(0.0)  # weight of the in-image window, then of its valid samples and their moments
-    n = float(0.0)
-    sa = float(0.0)
-    saa = float(0.0)
+    m = moments[y, x]
+    t = m[0]
+    n = t  # weight of the valid samples: the window's less what falls outside the source
+    sa = m[1]
+    saa = m[2]
     sb = float(0.0)
     sbb = float(0.0)
     sab = float(0.0)
+    o = int(0)
     for dy in range(-radius, radius + 1):
         yy = y + dy
         for dx in range(-radius, radius + 1):
             xx = x + dx
-            if yy >= 0 and yy < H and xx >= 0 and xx < W:
-                d = colour[yy, xx] - centre
-                w = wp.exp(-(wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2])) / gamma_colour - wp.sqrt(float(dx * dx + dy * dy)) / gamma_distance)
-                t += w
+            w = weights[y, x, o]
+            o += 1
+            if w > 0.0 and n >= 0.999 * t:
                 X = wp.transform_point(T, ref_rays[yy, xx] * z)
+                b = float(-1.0)
                 if camera_in_domain(cam, X, NEAR, FAR):
                     uv = camera_project(cam, X)
                     b = sample_bilinear(src, s, uv[0], uv[1], cam.width, cam.height)
-                    if b >= 0.0:
-                        a = ref[yy, xx]
-                        n += w
-                        sa += w * a
-                        saa += w * a * a
-                        sb += w * b
-                        sbb += w * b * b
-                        sab += w * a * b
+                a = ref[yy, xx]
+                if b >= 0.0:
+                    sb += w * b
+                    sbb += w * b * b
+                    sab += w * a * b
+                else:
+                    n -= w
+                    sa -= w * a
+                    saa -= w * a * a
     c = float(NO_COST)
     if n >= 0.999 * t and n > 0.0:
         c = zncc_cost(n, sa, saa, sb, sbb, sab, min_std)
@@ -306,7 +283,7 @@ def rescore_select_kernel(
     out: wp.array(dtype=float, ndim=2),  # [H,W] m: overwritten where re-scored
 ):
     """Where the own depth was re-scored at all: the picked candidate of lowest adaptive
-    cost (``best_k`` as in :func:`candidate_select_kernel`), replacing the separable pass's
+    cost (``best_k`` as in :func:`candidate_select_kernel`), replacing the plain-window pass's
     choice."""
     y, x = wp.tid()
     if picked[0, y, x] < 0 or a1[0, y, x] >= NO_COST:
@@ -393,21 +370,21 @@ def propagate_depth(
     cand_w = wp.array(cand, dtype=wp.vec3, device=device)
     cams_w = wp.array(list(src_cams), dtype=Camera, device=device)
     T_w = wp.array(np.asarray(T_src_ref, np.float32).reshape(S, 4, 4), dtype=wp.mat44, device=device)
-    # one source at a time: memory 10 x D x H x W floats, whatever the number of sources
+    # one source at a time: memory 4 x D x H x W floats, whatever the number of sources
     warped = wp.empty((D, H, W), dtype=float, device=device)
-    rows = wp.empty((D, H, W), dtype=window_sums, device=device)
+    cost = wp.empty((D, H, W), dtype=float, device=device)
     m1 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     m2 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     for s in range(S):
-        def warp_and_rows(worker, row0, n, s=s):  # the row sums read only their own rows of warped
+        def warp_band(worker, row0, n, s=s):
             wp.launch(candidate_warp_kernel, dim=(D, n, W), inputs=[ref_rays, depth_w, cand_w, src_w, cams_w, T_w, s, row0], outputs=[warped], device=device)
-            wp.launch(window_rows_kernel, dim=(D, n, W), inputs=[ref_w, warped, radius, row0], outputs=[rows], device=device)
 
-        def zncc_band(worker, row0, n):  # reads rows above and below: after all row sums
-            wp.launch(window_zncc_kernel, dim=(D, n, W), inputs=[rows, radius, min_std, row0], outputs=[m1, m2], device=device)
+        def zncc_band(worker, row0, n):  # reads rows above and below: after the whole warp
+            wp.launch(zncc_cost_kernel, dim=(D, W), inputs=[ref_w, warped, radius, min_std, 1.0, row0, n], outputs=[cost], device=device)
+            wp.launch(fold_lowest_kernel, dim=(D, n, W), inputs=[cost, row0], outputs=[m1, m2], device=device)
 
-        run_row_bands(device, H, warp_and_rows)
-        run_row_bands(device, H, zncc_band)
+        run_row_bands(device, H, warp_band)
+        run_row_bands(device, H, zncc_band)  # every in-image pixel of the window valid
     out = wp.empty((H, W), dtype=float, device=device)
     wp.launch(candidate_select_kernel, dim=(H, W), inputs=[m1, m2, best_k, depth_w, cand_w], outputs=[out], device=device)
     if ref_colour is not None and rescore > 0:
@@ -427,11 +404,14 @@ def propagate_depth(
         picked = wp.empty((rescore, H, W), dtype=wp.int32, device=device)
         wp.launch(rescore_pick_kernel, dim=(H, W), inputs=[m1, m2, depth_w, cand_w, at_edge, best_k], outputs=[picked], device=device)
         colour_w = wp.array(np.ascontiguousarray(ref_colour, dtype=np.float32), dtype=wp.vec3, device=device)
+        weights = wp.zeros((H, W, (2 * radius + 1) ** 2), dtype=float, device=device)
+        moments = wp.zeros((H, W), dtype=wp.vec3, device=device)
+        wp.launch(support_weights_kernel, dim=(H, W), inputs=[ref_w, colour_w, radius, gamma_colour, gamma_distance, at_edge], outputs=[weights, moments], device=device)
         a1 = wp.full((rescore, H, W), NO_COST, dtype=float, device=device)
         a2 = wp.full((rescore, H, W), NO_COST, dtype=float, device=device)
         for s in range(S):
             def adaptive_band(worker, row0, n, s=s):
-                wp.launch(adaptive_window_kernel, dim=(rescore, n, W), inputs=[ref_w, colour_w, ref_rays, depth_w, cand_w, picked, src_w, cams_w, T_w, s, radius, gamma_colour, gamma_distance, min_std, row0], outputs=[a1, a2], device=device)
+                wp.launch(adaptive_window_kernel, dim=(rescore, n, W), inputs=[ref_w, weights, moments, ref_rays, depth_w, cand_w, picked, src_w, cams_w, T_w, s, radius, min_std, row0], outputs=[a1, a2], device=device)
 
             run_row_bands(device, H, adaptive_band)
         wp.launch(rescore_select_kernel, dim=(H, W), inputs=[a1, a2, picked, depth_w, cand_w, best_k], outputs=[out], device=device)

@@ -187,40 +187,65 @@ def test_propagation_moves_a_grid_depth_towards_the_raycast_depth(model):
     assert np.median(np.abs(exact - gt)[gt > 0] / gt[gt > 0]) < 0.005
 
 
-def test_separable_window_zncc_equals_the_direct_window_sum():
-    """The two-pass window sums of the propagation give the ZNCC of the direct (2r+1)^2 sum
-    of the sweep (zncc_cost_kernel) wherever the whole window is valid, and the lowest two
-    costs over sources fed one at a time."""
+def window_zncc_reference(ref, warped, r, min_std, min_valid):
+    """float64 ``1 - ZNCC`` [H,W] of the direct (2r+1)^2 window of ``warped`` [H,W] against
+    ``ref`` over the valid samples (``>= 0``); 3 (NO_COST) where fewer than ``min_valid`` of
+    the in-image window is valid or either window is flat (sweep.zncc_cost's rule)."""
+    H, W = ref.shape
+    out = np.full((H, W), 3.0)
+    for y in range(H):
+        for x in range(W):
+            a = ref[max(0, y - r) : y + r + 1, max(0, x - r) : x + r + 1].astype(np.float64)
+            b = warped[max(0, y - r) : y + r + 1, max(0, x - r) : x + r + 1].astype(np.float64)
+            ok = b >= 0
+            n = ok.sum()
+            if n < min_valid * a.size or n <= 1:
+                continue
+            a, b = a[ok], b[ok]
+            va, vb = a.var(), b.var()
+            if va > min_std**2 and vb > 0.25 * min_std**2:
+                out[y, x] = 1.0 - np.clip(((a - a.mean()) * (b - b.mean())).mean() / np.sqrt(va * vb), -1, 1)
+    return out
+
+
+def test_sliding_window_zncc_equals_the_direct_window_sum():
+    """The window ZNCC (zncc_cost_kernel) as the sweep uses it (3/4 of the window valid) and
+    as the propagation does (all of it, the two lowest costs over sources fed one at a time),
+    sliding its window down each column over bands of rows, equals a direct float64 sum over
+    each pixel's window, image borders and invalid samples included."""
     import warp as wp
 
+    from mcgs_warp.kernels.propagation import fold_lowest_kernel
     from mcgs_warp.kernels.sweep import NO_COST, zncc_cost_kernel
 
-    from mcgs_warp.kernels.propagation import window_rows_kernel, window_sums, window_zncc_kernel
-
     rng = np.random.default_rng(3)
-    S, D, H, W, r = 3, 4, 20, 24, 2
+    S, D, H, W, r = 3, 4, 23, 26, 2
     ref = rng.random((H, W)).astype(np.float32)
+    ref[:6, :7] = 0.5  # a flat corner: no cost there
     warped = rng.random((S, D, H, W)).astype(np.float32)
     warped[rng.random((S, D, H, W)) < 0.02] = -1.0  # a few invalid samples
-    cost = wp.empty((S, D, H, W), dtype=float, device="cpu")
+    warped[:, :, 15:, 20:] = -1.0  # and a block where the source ends
+    sweep_ref = np.stack([[window_zncc_reference(ref, warped[s, k], r, 0.02, 0.75) for k in range(D)] for s in range(S)])
+    prop_ref = np.stack([[window_zncc_reference(ref, warped[s, k], r, 0.02, 1.0) for k in range(D)] for s in range(S)])
+    assert (sweep_ref < float(NO_COST)).mean() > 0.5 and (prop_ref < float(NO_COST)).mean() > 0.3
+    assert ((sweep_ref < float(NO_COST)) & (prop_ref >= float(NO_COST))).any()  # the two rules differ here
+
     ref_w = wp.array(ref, dtype=float, device="cpu")
-    wp.launch(zncc_cost_kernel, dim=(S, D, H, W), inputs=[ref_w, wp.array(warped, dtype=float, device="cpu"), r, 0.02, 0], outputs=[cost], device="cpu")
-    direct = cost.numpy()
+    cost = wp.empty((S * D, H, W), dtype=float, device="cpu")
+    flat = wp.array(warped.reshape(S * D, H, W), dtype=float, device="cpu")
+    for row0, rows in ((0, 5), (5, 1), (6, 17)):  # bands of rows, as run_row_bands launches them
+        wp.launch(zncc_cost_kernel, dim=(S * D, W), inputs=[ref_w, flat, r, 0.02, 0.75, row0, rows], outputs=[cost], device="cpu")
+    np.testing.assert_allclose(cost.numpy().reshape(S, D, H, W), sweep_ref, atol=2e-5)
+
     m1 = wp.full((D, H, W), NO_COST, dtype=float, device="cpu")
     m2 = wp.full((D, H, W), NO_COST, dtype=float, device="cpu")
-    rows = wp.empty((D, H, W), dtype=window_sums, device="cpu")
-    valid = np.ones((S, D, H, W), bool)
+    one_cost = wp.empty((D, H, W), dtype=float, device="cpu")
     for s in range(S):
         one = wp.array(warped[s], dtype=float, device="cpu")
-        wp.launch(window_rows_kernel, dim=(D, H, W), inputs=[ref_w, one, r, 0], outputs=[rows], device="cpu")
-        wp.launch(window_zncc_kernel, dim=(D, H, W), inputs=[rows, r, 0.02, 0], outputs=[m1, m2], device="cpu")
-        bad = (warped[s] < 0).astype(np.float32)
-        import cv2
-
-        valid[s] = np.stack([cv2.dilate(b, np.ones((2 * r + 1, 2 * r + 1))) for b in bad]) == 0
-    expect = np.where(valid, direct, float(NO_COST))  # the propagation wants every sample of the window
-    srt = np.sort(expect, axis=0)
-    assert (valid.sum(0) > 0).mean() > 0.5
+        for row0, rows in ((0, 11), (11, 12)):
+            wp.launch(zncc_cost_kernel, dim=(D, W), inputs=[ref_w, one, r, 0.02, 1.0, row0, rows], outputs=[one_cost], device="cpu")
+        wp.launch(fold_lowest_kernel, dim=(D, H, W), inputs=[one_cost, 0], outputs=[m1, m2], device="cpu")
+    srt = np.sort(prop_ref, axis=0)
     np.testing.assert_allclose(m1.numpy(), srt[0], atol=2e-5)
     np.testing.assert_allclose(m2.numpy(), srt[1], atol=2e-5)
 

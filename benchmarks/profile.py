@@ -1,0 +1,165 @@
+"""Where a run's time goes: seconds per stage and the share of them inside Warp kernels.
+
+    python benchmarks/profile.py [--data ../shared/data/kitti_stereo_excerpt] [--out out/profile]
+        [--every 1] [--config C.yaml] [--cprofile out/profile/run.prof]
+
+Runs ``mcgs-slam run`` in this process (default configuration unless ``--config``) with each
+stage's entry point wrapped: the time of a call is charged to the innermost stage running
+(so "keyframe step" excludes the MCBA solves it calls and "offline" the photo-depth pass and
+refinement; refinement, the photo-depth pass and the outputs keep what they call). Warp's CPU launches are synchronous, so the time the main
+thread spends in ``wp.launch`` plus the time it waits for the row bands' worker threads
+(:mod:`kernels.launch`) is the wall time inside kernels; the rest is Python, NumPy, OpenCV
+and copies. Prints one row per stage: calls, seconds, share of the run, seconds inside
+kernels and their share of the stage. Without the KITTI excerpt (its licence keeps it out of
+the repository) it runs the built-in synthetic demo sequence instead. ``--cprofile`` also
+writes a cProfile dump (``python -m pstats``) of the whole run.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
+    del sys.path[0]  # this file's name would shadow the standard library's profile (cProfile imports it)
+
+import argparse
+import functools
+import threading
+import time
+
+DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_stereo_excerpt"
+
+#: (module, owner, method, stage): the entry points charged to each stage
+STAGES = [
+    ("mcgs_warp.frontend.keypoint_odometry", "KeypointOdometry", "track", "odometry"),
+    ("mcgs_warp.frontend.keyframes", "KeyframeSelector", "is_keyframe", "keyframe test"),
+    ("mcgs_warp.system.slam", "SLAM", "add_keyframe", "keyframe step"),
+    ("mcgs_warp.ba.mcba", "MCBA", "solve", "MCBA solve"),
+    ("mcgs_warp.mapping.mapper", "Mapper", "add_keyframe", "map insert"),
+    ("mcgs_warp.mapping.mapper", "Mapper", "optimize", "mapping"),
+    ("mcgs_warp.system.slam", "SLAM", "save_checkpoint", "checkpoint"),
+    ("mcgs_warp.system.slam", "SLAM", "refine", "offline"),
+    ("mcgs_warp.system.slam", "SLAM", "photo_consistent_targets", "photo depth"),
+    ("mcgs_warp.system.offline", None, "joint_refinement", "refinement"),
+    ("mcgs_warp.system.run", None, "write_outputs", "outputs"),
+]
+
+#: stages charged with everything they call (refinement's mapping iterations are refinement)
+WHOLE = {"refinement", "photo depth", "outputs"}
+
+
+class StageClock:
+    """Wall time per stage (innermost stage charged) and main-thread time inside Warp kernels."""
+
+    def __init__(self):
+        self.stack: list = []  # [stage, start, time of nested stages]
+        self.seconds: dict = {}
+        self.kernel: dict = {}
+        self.calls: dict = {}
+        self.main = threading.main_thread()
+        self.in_kernel = False
+
+    def stage(self, name, fn):
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            if self.stack and self.stack[-1][0] in WHOLE:
+                return fn(*args, **kwargs)
+            self.stack.append([name, time.perf_counter(), 0.0])
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                _, t0, nested = self.stack.pop()
+                dt = time.perf_counter() - t0
+                self.seconds[name] = self.seconds.get(name, 0.0) + dt - nested
+                self.calls[name] = self.calls.get(name, 0) + 1
+                if self.stack:
+                    self.stack[-1][2] += dt
+        return timed
+
+    def kernel_time(self, fn):
+        @functools.wraps(fn)
+        def timed(*args, **kwargs):
+            if threading.current_thread() is not self.main or self.in_kernel:
+                return fn(*args, **kwargs)
+            self.in_kernel = True
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.in_kernel = False
+                name = self.stack[-1][0] if self.stack else "other"
+                self.kernel[name] = self.kernel.get(name, 0.0) + time.perf_counter() - t0
+        return timed
+
+    def install(self) -> None:
+        import importlib
+
+        import warp as wp
+
+        from mcgs_warp.kernels import launch
+
+        wp.launch = self.kernel_time(wp.launch)
+        launch.wait = self.kernel_time(launch.wait)  # the row bands' worker threads
+        for module, owner, method, name in STAGES:
+            mod = importlib.import_module(module)
+            target = getattr(mod, owner) if owner else mod
+            setattr(target, method, self.stage(name, getattr(target, method)))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT)
+    ap.add_argument("--out", type=Path, default=Path("out/profile"))
+    ap.add_argument("--every", type=int, default=1)
+    ap.add_argument("--config", type=Path, default=None)
+    ap.add_argument("--cprofile", type=Path, default=None)
+    args = ap.parse_args()
+
+    from mcgs_warp.cli import init_warp
+
+    init_warp()
+    import warp as wp
+
+    wp.config.quiet = True  # no line per kernel module loaded
+    clock = StageClock()
+    clock.install()
+    from mcgs_warp.system.run import run_sequence
+
+    data = args.data
+    if not data.is_dir():
+        from mcgs_warp.data.synthetic import generate
+        from mcgs_warp.system.config import packaged_config
+
+        data = args.out / "demo_data"
+        print(f"no KITTI data at {args.data}: profiling the demo's synthetic sequence ({data})")
+        generate(data, n_cameras=3, n_frames=40, seed=0, depth="exact")
+        args.config = args.config or packaged_config("synthetic.yaml")
+    clock.kernel.clear()  # the demo sequence's rendering is no part of the run
+    t0 = time.perf_counter()
+    if args.cprofile is not None:
+        import cProfile
+
+        args.cprofile.parent.mkdir(parents=True, exist_ok=True)
+        prof = cProfile.Profile()
+        prof.enable()
+    run_sequence(data, args.out / "run", config=args.config, every=args.every, progress=False)
+    if args.cprofile is not None:
+        prof.disable()
+        prof.dump_stats(str(args.cprofile))
+    total = time.perf_counter() - t0
+    rest = total - sum(clock.seconds.values())
+    rows = sorted(clock.seconds.items(), key=lambda kv: -kv[1]) + [("other (loop, loading)", rest)]
+    print(f"\n{data} (--every {args.every}): {total:.1f} s\n")
+    print(f"| {'stage':<22} | {'calls':>5} | {'seconds':>8} | {'of run':>6} | {'in kernels':>10} | {'share':>5} |")
+    print(f"|{'-' * 24}|{'-' * 7}|{'-' * 10}|{'-' * 8}|{'-' * 12}|{'-' * 7}|")
+    for name, sec in rows:
+        kern = clock.kernel.get(name if name in clock.seconds else "other", 0.0)
+        print(f"| {name:<22} | {clock.calls.get(name, ''):>5} | {sec:8.1f} | {100 * sec / total:5.1f}% | {kern:10.1f} | {100 * kern / max(sec, 1e-9):4.0f}% |")
+    kern_all = sum(clock.kernel.values())
+    print(f"| {'total':<22} | {'':>5} | {total:8.1f} | 100.0% | {kern_all:10.1f} | {100 * kern_all / total:4.0f}% |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
