@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .camera import FAR, NEAR, Camera, camera_in_domain, camera_jacobian, camera_project, camera_unproject
+from .camera import FAR, NEAR, Camera, camera_in_domain, camera_jacobian, camera_project, camera_unproject, mat23
 from .se3 import se3_retract, skew, vec6
 
 wp.set_module_options({"enable_backward": False})
@@ -60,6 +60,30 @@ def unproject_points_kernel(cam: Camera, uv: wp.array(dtype=wp.vec2), rays: wp.a
     """Unit-depth rays of arbitrary pixels ``uv`` [M] of one camera."""
     i = wp.tid()
     rays[i] = camera_unproject(cam, uv[i], 1.0)
+
+
+@wp.kernel
+def project_points_kernel(
+    cam: Camera,
+    X: wp.array(dtype=wp.vec3),  # [M] camera-frame points (m)
+    near: float,
+    far: float,
+    uv: wp.array(dtype=wp.vec2),  # [M] pixels (0 where not ok)
+    J: wp.array(dtype=mat23),  # [M] d uv / d X (0 where not ok)
+    ok: wp.array(dtype=wp.int32),  # [M] 1: finite, inside the near/far range and the model's domain
+):
+    """Pixels and analytic Jacobians of arbitrary camera-frame points ``X`` [M] of one camera."""
+    i = wp.tid()
+    p = X[i]
+    good = int(0)
+    if wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]):
+        if camera_in_domain(cam, p, near, far):
+            q = camera_project(cam, p)
+            if wp.isfinite(q[0]) and wp.isfinite(q[1]):
+                good = 1
+                uv[i] = q
+                J[i] = camera_jacobian(cam, p)
+    ok[i] = good
 
 
 @wp.func

@@ -30,8 +30,6 @@ TEMPORAL, CROSS_VIEW, CROSS_TIME = 0, 1, 2
 def camera_overlap(rig: Rig, depth: float = 5.0, stride: int = 8) -> np.ndarray:
     """Fraction [C,C] of camera a's pixels that camera b sees when the scene lies at
     ``depth`` metres (a rough, rig-only test of overlapping fields of view)."""
-    from ..kernels import reference
-
     C = len(rig)
     cams = [c.warp_camera() for c in rig.cameras]
     frac = np.eye(C)
@@ -45,12 +43,36 @@ def camera_overlap(rig: Rig, depth: float = 5.0, stride: int = 8) -> np.ndarray:
             T_b_a = np.linalg.inv(rig.cameras[b].T_b_c) @ spec.T_b_c
             X_b = X_a @ T_b_a[:3, :3].T + T_b_a[:3, 3]
             cam_b = cams[b]
-            with np.errstate(all="ignore"):
-                ok = reference.in_domain(cam_b, X_b)
-                p = reference.project(cam_b, np.where(ok[:, None], X_b, [0.0, 0.0, 1.0]))
+            p, ok, _ = project_points(cam_b, X_b)
             inside = ok & (p[:, 0] >= 0) & (p[:, 0] <= cam_b.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= cam_b.height - 1)
             frac[a, b] = inside.mean()
     return frac
+
+
+def project_points(cam, X: np.ndarray, jacobian: bool = False, near: float | None = None, far: float | None = None):
+    """Pixels [...,2] (float64, 0 where not ok), whether each point projects (finite, between
+    the near and far planes, inside the model's domain) [...] and, with ``jacobian``, the
+    analytic ``d uv / d X`` [...,2,3] (else None) of camera-frame points ``X`` [...,3] (m) in
+    Warp camera ``cam``: the kernels' own camera model, on the CPU (host-side callers)."""
+    import warp as wp
+
+    from ..kernels.ba import project_points_kernel
+    from ..kernels.camera import FAR, NEAR, mat23
+
+    X = np.asarray(X, dtype=np.float64)
+    shape = X.shape[:-1]
+    M = int(np.prod(shape))
+    uv = wp.zeros(M, dtype=wp.vec2, device="cpu")
+    J = wp.zeros(M, dtype=mat23, device="cpu")
+    ok = wp.zeros(M, dtype=wp.int32, device="cpu")
+    if M:
+        pts = wp.array(np.ascontiguousarray(X.reshape(M, 3), dtype=np.float32), dtype=wp.vec3, device="cpu")
+        wp.launch(project_points_kernel, dim=M, inputs=[cam, pts, NEAR if near is None else near, FAR if far is None else far], outputs=[uv, J, ok], device="cpu")
+    return (
+        uv.numpy().astype(np.float64).reshape(*shape, 2),
+        ok.numpy().astype(bool).reshape(shape),
+        J.numpy().astype(np.float64).reshape(*shape, 2, 3) if jacobian else None,
+    )
 
 
 def unproject_pixels(cam, uv: np.ndarray) -> np.ndarray:
@@ -153,8 +175,6 @@ def reproject(buffer: KeyframeBuffer, edges: np.ndarray, poses: np.ndarray | Non
     * ``known`` [E,hs,ws] bool: the pixel of view (i, ci) has depth (inside camera ci's grid).
 
     Through ``T_cj_ci = inv(T_b_cj) inv(T_w_bj) T_w_bi T_b_ci`` (DESIGN.md), vectorized in NumPy."""
-    from ..kernels import reference
-
     e = np.asarray(edges)[:, :4].astype(np.int64)
     E, s = len(e), int(sample)
     T_w_b = buffer.get_poses() if poses is None else np.asarray(poses, dtype=np.float64)
@@ -179,11 +199,8 @@ def reproject(buffer: KeyframeBuffer, edges: np.ndarray, poses: np.ndarray | Non
     for c in np.unique(cj):
         sel = cj == c
         cam = buffer.reduced[c].warp_camera()
-        Xc = Xj[sel]
-        with np.errstate(all="ignore"):
-            ok = known[sel] & reference.in_domain(cam, Xc)
-            p = reference.project(cam, np.where(ok[..., None], Xc, [0.0, 0.0, 1.0]))
-        ok &= np.isfinite(p).all(-1) & (p[..., 0] >= 0) & (p[..., 0] <= cam.width - 1) & (p[..., 1] >= 0) & (p[..., 1] <= cam.height - 1)
+        p, ok, _ = project_points(cam, Xj[sel])
+        ok &= known[sel] & (p[..., 0] >= 0) & (p[..., 0] <= cam.width - 1) & (p[..., 1] >= 0) & (p[..., 1] <= cam.height - 1)
         uv[sel] = np.where(ok[..., None], p, 0.0)
         valid[sel] = ok
     return uv, valid, known

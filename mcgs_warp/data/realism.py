@@ -44,8 +44,9 @@ def image_motion(rays: np.ndarray, depth: np.ndarray, cam, T_c1_c0: np.ndarray) 
     ``T_c1_c0`` (frame-0 camera coordinates -> frame-1 camera coordinates). ``rays`` [H,W,3]:
     camera-frame rays at unit model depth; ``depth`` [H,W] model depth (m), 0 = none (the
     sky: a point at infinity, moved by the rotation only); ``cam``: the camera's Warp struct
-    (:func:`mcgs_warp.kernels.reference.project`). Pixels without a ray get 0."""
-    from ..kernels import reference
+    (:func:`mcgs_warp.ba.edges.project_points`). Pixels without a ray, or whose point leaves
+    the camera's domain, get 0."""
+    from ..ba.edges import project_points
 
     H, W = depth.shape
     ok = np.isfinite(rays).all(-1)
@@ -55,12 +56,10 @@ def image_motion(rays: np.ndarray, depth: np.ndarray, cam, T_c1_c0: np.ndarray) 
     X1 = X @ T_c1_c0[:3, :3].T + T_c1_c0[:3, 3]
     X1 = np.where(far[..., None], r @ T_c1_c0[:3, :3].T, X1)  # at infinity only the rotation moves it
     X0 = np.where(far[..., None], r, X)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d = reference.project(cam, X1.reshape(-1, 3)) - reference.project(cam, X0.reshape(-1, 3))
-    d = d.reshape(H, W, 2)
-    finite = np.isfinite(d).all(-1)
-    good = (ok & finite & reference.in_domain(cam, X1.reshape(-1, 3)).reshape(H, W)) | (far & finite)
-    return np.where(good[..., None], d, 0.0).astype(np.float32)
+    p1, ok1, _ = project_points(cam, X1)
+    p0, ok0, _ = project_points(cam, X0)
+    good = ok & ok1 & ok0
+    return np.where(good[..., None], p1 - p0, 0.0).astype(np.float32)
 
 
 def motion_blur(image: np.ndarray, displacement: np.ndarray, samples: int = 9) -> np.ndarray:

@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..ba.edges import project_points
 from ..buffer import KeyframeBuffer, grid_pixels
 from ..kernels.launch import cpu_workers
 
@@ -185,15 +186,13 @@ def project_grid_depth(buffer: KeyframeBuffer, ci: int, z: np.ndarray, T_cj_ci: 
     with depth ``z`` [h,w] (m, 0 = none), and whether each lands inside view cj. ``rays``:
     the buffer's grid rays on the host ([C,h,w,3], ``buffer.rays.numpy()``), read once by
     callers that loop over edges."""
-    from ..kernels import reference
-
     h, w = z.shape
     rays = buffer.rays.numpy() if rays is None else rays
     X = rays[ci, :h, :w].astype(np.float64) * z[..., None]
     Xj = X.reshape(-1, 3) @ T_cj_ci[:3, :3].T + T_cj_ci[:3, 3]
     cam = buffer.rig.cameras[cj].warp_camera()
-    ok = (z.reshape(-1) > 0) & reference.in_domain(cam, Xj)
-    p = reference.project(cam, np.where(ok[:, None], Xj, [0.0, 0.0, 1.0]))
+    p, ok, _ = project_points(cam, Xj)
+    ok &= z.reshape(-1) > 0
     inside = ok & (p[:, 0] >= 0) & (p[:, 0] <= cam.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= cam.height - 1)
     return p, inside, Xj
 
@@ -218,8 +217,6 @@ class GroundTruthFlow(FlowProvider):
         return self.T_w_b[k]
 
     def correspondences(self, buffer: KeyframeBuffer, edges: np.ndarray):
-        from ..kernels import reference
-
         E, s = len(edges), buffer.stride
         targets = np.zeros((E, buffer.h, buffer.w, 2), np.float32)
         weights = np.zeros((E, buffer.h, buffer.w), np.float32)
@@ -233,7 +230,7 @@ class GroundTruthFlow(FlowProvider):
             p, inside, Xj = project_grid_depth(buffer, ci, z, T, cj, rays)
             pr = np.round(np.where(inside[:, None], p, 0)).astype(int)
             seen = self.depths_of(buffer, j)[cj][pr[:, 1], pr[:, 0]]
-            pred = reference.depth(buffer.rig.cameras[cj].warp_camera(), Xj)
+            pred = np.linalg.norm(Xj, axis=-1) if buffer.rig.cameras[cj].model == "equirectangular" else Xj[:, 2]  # the model's depth (DESIGN.md)
             visible = inside & (np.abs(seen - pred) <= self.rel_tol * pred)
             targets[e, :h, :w] = to_reduced(p, s).reshape(h, w, 2)
             weights[e, :h, :w] = visible.reshape(h, w)

@@ -151,9 +151,9 @@ class GaussianMap:
         index = [np.nonzero(keep & ~np.isin(np.arange(n), split))[0], clone]
         new = {key: [v[index[0]], v[clone]] for key, v in d.items()}
         if len(split):
-            from ..kernels.reference import quat_to_rotation
+            from ..geometry import quat_to_matrix
 
-            R = quat_to_rotation(d["quats"][split])
+            R = quat_to_matrix(d["quats"][split])
             s = np.exp(d["log_scales"][split])
             for _ in range(2):
                 offset = np.einsum("nij,nj->ni", R, rng.normal(size=s.shape) * s)

@@ -158,3 +158,27 @@ def test_pixels_without_a_ray_unproject_to_nan(model, size, intrinsics, dist, no
 def test_make_camera_rejects_bad_arguments(args, message):
     with pytest.raises(ValueError, match=message):
         make_camera(*args)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_host_point_projection_matches_reference(model):
+    """project_points (the host side's camera: the kernels' model, not the float64 test
+    reference) gives the reference's pixels and Jacobians where the reference says the point
+    is in the domain, and rejects points behind, beyond the far plane and non-finite ones."""
+    from mcgs_warp.ba.edges import project_points
+
+    rng = np.random.default_rng(4)
+    cam = cameras()[model]
+    p = points_in_view(model, 300, rng)
+    bad = np.array([[0.0, 0.0, -2.0], [0.1, 0.2, 1e6], [np.nan, 0.0, 3.0], [0.0, np.inf, 1.0]])
+    if model == "equirectangular":
+        bad = bad[1:]  # a sphere sees behind it
+    uv, ok, J = project_points(cam, np.concatenate([p, bad]).reshape(-1, 1, 3), jacobian=True)
+    assert uv.shape == (len(p) + len(bad), 1, 2) and ok.shape == (len(p) + len(bad), 1) and J.shape == (len(p) + len(bad), 1, 2, 3)
+    uv, ok, J = uv[:, 0], ok[:, 0], J[:, 0]
+    assert ok[: len(p)].all() and not ok[len(p) :].any()
+    assert (uv[len(p) :] == 0).all()
+    np.testing.assert_allclose(uv[: len(p)], reference.project(cam, p), atol=2e-4)
+    np.testing.assert_allclose(J[: len(p)], reference.jacobian(cam, p), rtol=2e-3, atol=2e-3)
+    _, ok_near, _ = project_points(cam, p, near=float(np.linalg.norm(p, axis=1).max()) + 1.0)
+    assert not ok_near.any()
