@@ -5,8 +5,9 @@
 
 Runs ``mcgs-slam run`` in this process (default configuration unless ``--config``) with each
 stage's entry point wrapped: the time of a call is charged to the innermost stage running
-(so "keyframe step" excludes the MCBA solves it calls and "offline" the photo-depth pass and
-refinement; refinement, the photo-depth pass and the outputs keep what they call). Warp's CPU launches are synchronous, so the time the main
+(so "keyframe step" excludes the MCBA solves it calls and "offline" global BA, the
+photo-depth pass and refinement; refinement, the photo-depth pass and the outputs keep what
+they call). Warp's CPU launches are synchronous, so the time the main
 thread spends in ``wp.launch`` plus the time it waits for the row bands' worker threads
 (:mod:`kernels.launch`) is the wall time inside kernels; the rest is Python, NumPy, OpenCV
 and copies. Prints one row per stage: calls, seconds, share of the run, seconds inside
@@ -34,14 +35,16 @@ DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_stere
 STAGES = [
     ("mcgs_warp.frontend.keypoint_odometry", "KeypointOdometry", "track", "odometry"),
     ("mcgs_warp.frontend.keyframes", "KeyframeSelector", "is_keyframe", "keyframe test"),
-    ("mcgs_warp.system.slam", "SLAM", "add_keyframe", "keyframe step"),
+    ("mcgs_warp.system.tracker", "Tracker", "add_keyframe", "keyframe step"),
     ("mcgs_warp.ba.mcba", "MCBA", "solve", "MCBA solve"),
+    ("mcgs_warp.mapping.mapper", "Mapper", "follow", "map follows"),
     ("mcgs_warp.mapping.mapper", "Mapper", "add_keyframe", "map insert"),
     ("mcgs_warp.mapping.mapper", "Mapper", "optimize", "mapping"),
-    ("mcgs_warp.system.slam", "SLAM", "save_checkpoint", "checkpoint"),
+    ("mcgs_warp.system.slam", None, "save_checkpoint", "checkpoint"),
     ("mcgs_warp.system.slam", "SLAM", "refine", "offline"),
-    ("mcgs_warp.system.slam", "SLAM", "photo_consistent_targets", "photo depth"),
-    ("mcgs_warp.system.offline", None, "joint_refinement", "refinement"),
+    ("mcgs_warp.system.tracker", "Tracker", "global_ba", "global BA"),
+    ("mcgs_warp.system.slam", None, "photo_consistent_targets", "photo depth"),
+    ("mcgs_warp.system.slam", None, "joint_refinement", "refinement"),
     ("mcgs_warp.system.run", None, "write_outputs", "outputs"),
 ]
 

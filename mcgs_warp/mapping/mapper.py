@@ -110,6 +110,7 @@ class Mapper:
         self.optimize_poses = False
         self.sky: dict[int, list] = {}  # keyframe -> per camera [H,W] bool sky mask (mapping/sky.py)
         self.sky_depth_veto = False  # True with exact sensor depth: a region it measures is not sky
+        self.placed: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with (:meth:`follow`)
         self.fixed_poses: set[int] = {0}
         self.adam = self._new_adam()
         self.loss = MappingLoss(self.cams, dev, self.cfg.target_cache, rays=buffer.full_rays)
@@ -156,12 +157,15 @@ class Mapper:
         out = render(self.map.gaussians, views)
         return self.colour(out, views), out
 
-    def add_keyframe(self, k: int, depths) -> int:
+    def add_keyframe(self, k: int, depths, placed=None) -> int:
         """Register keyframe ``k`` of the buffer with full-resolution depth targets
-        ``depths[c]`` [H,W] (m, 0 = none) and add Gaussians where the map is empty."""
+        ``depths[c]`` [H,W] (m, 0 = none) and add Gaussians where the map is empty;
+        ``placed`` [C,h,w]: the grid depth they were placed with (:meth:`follow`)."""
         from .sky import sky_mask
 
         self.buf.targets[k] = list(depths)
+        if placed is not None:
+            self.placed[k] = np.asarray(placed)
         images = self.buf.images[k]
         if self.cfg.sky:
             self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None, far=self.cfg.insert_max_depth) for c in range(len(self.cams))]
@@ -184,6 +188,30 @@ class Mapper:
         added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity, fill_guess=guess)
         self._remap_optimizer(np.concatenate([np.arange(before), -np.ones(added, int)]))
         return added
+
+    def follow(self, updates, rig) -> None:
+        """The map follows tracking's updates in order (:mod:`.follow`): a keyframe's anchored
+        Gaussians move with its pose (:class:`~.follow.PosesMoved`); a mapped keyframe's follow
+        the change of its grid depth from the one they were placed with along their rays (eq. 13
+        per pixel, :func:`~.follow.depth_ratio`) and its depth targets become the new ones
+        (:class:`~.follow.DepthMoved`)."""
+        from .follow import PosesMoved, depth_ratio
+
+        for u in updates:
+            if isinstance(u, PosesMoved):
+                self.map.follow_keyframes(u.before, u.after)
+                continue
+            old = self.placed[u.k]
+            ratio = depth_ratio(old, u.depth)
+            self.map.follow_depth(u.k, u.T_w_b, rig, self.buf.cameras, ratio)
+            # what the Gaussians now stand for: the part of the change the filter or clip held back stays due
+            self.placed[u.k] = np.where((old > 0) & (u.depth > 0), old * ratio, u.depth)
+            self.buf.targets[u.k] = u.targets
+
+    def replace_targets(self, targets: dict) -> None:
+        """New full-resolution depth targets for mapped keyframes (keyframe -> per camera
+        [H,W] m): new lists, so that the loss uploads them again."""
+        self.buf.targets.update({k: list(v) for k, v in targets.items()})
 
     def _remap_optimizer(self, index: np.ndarray) -> None:
         """Carry the Gaussians' Adam moments to a new order (``index``: source or -1)."""

@@ -2,7 +2,7 @@
 small arrays, and beside it the large ones, written only when they change (the factor graph's
 correspondence segments, one content-named file per mapped keyframe's depth targets).
 
-A mixin of :class:`~mcgs_warp.system.slam.SLAM`.
+Functions of the whole system (:class:`~mcgs_warp.system.slam.SLAM`): its stages' state.
 """
 
 from __future__ import annotations
@@ -20,140 +20,140 @@ import numpy as np
 CHECKPOINT_FORMAT = 10
 
 
-class Checkpointing:
-    def save_checkpoint(self, path, next_frame: int, kf_frames: list) -> None:
-        """Write the whole online state atomically (``path``: a .npz file). The large parts
-        live beside it and are written only when they change, so a run's checkpoint I/O grows
-        with the keyframes, not with their square: the factor graph's correspondences in
-        segment files (:func:`correspondence_store`), each mapped keyframe's full-resolution
-        depth targets and placement depth in a file named by its content (:func:`keyframe_store`)."""
-        import json
+def save_checkpoint(slam, path, next_frame: int, kf_frames: list) -> None:
+    """Write the whole online state atomically (``path``: a .npz file). The large parts
+    live beside it and are written only when they change, so a run's checkpoint I/O grows
+    with the keyframes, not with their square: the factor graph's correspondences in
+    segment files (:func:`correspondence_store`), each mapped keyframe's full-resolution
+    depth targets and placement depth in a file named by its content (:func:`keyframe_store`)."""
+    import json
 
-        from ..io import atomic_write
+    from ..io import atomic_write
 
-        buf, K = self.buf, len(self.buf)
-        arrays = {f"mapper.{k}": v for k, v in self.mapper.state_arrays().items()}
-        arrays.update(
-            poses=buf.poses.numpy()[:K].copy(),
-            disp=buf.disp.numpy()[:K].copy(),
-            depth_prior=buf.depth_prior[:K].numpy().copy(),
-            prior_conf=buf.prior_conf[:K].numpy().copy(),
-            scales=buf.scales[:K].numpy().copy(),
-            exposure=buf.exposure.numpy()[:K].copy(),
-            timestamps=np.array(buf.timestamps),
-            frame_index=np.array(buf.frame_index, dtype=np.int64),
-            kf_frames=np.array(kf_frames, dtype=np.int64),
-            **self.graph.state_arrays(correspondence_store(path)),
-            **(self.tracks.state_arrays() if self.tracks is not None else {}),
-            **(self.odometry.state_arrays() if self.odometry is not None else {}),
-            **self.mcba.state_arrays(),
-            mapped_keys=np.array(sorted(self._mapped_depth), dtype=np.int64),
-            keyframe_files=np.array(self._save_keyframe_files(keyframe_store(path)), dtype=str).reshape(-1),
-            meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": self.cfg.to_dict(), "n_frames": len(self.seq), "seconds": self.seconds, "health": self.health, "lost": self.lost, "kept": self.kept, "carried": self._carried, "lost_span": self._lost_span, "frame_motion": {str(k): v for k, v in self.frame_motion.items()}})),
-        )
-        with atomic_write(path, "wb") as f:
-            np.savez(f, **arrays)
-        self.graph.prune_store(correspondence_store(path))  # segments only the replaced checkpoint used
-        keep = set(arrays["keyframe_files"].tolist())
-        for old in keyframe_store(path).glob("kf*.npz"):
-            if old.name not in keep:
-                old.unlink(missing_ok=True)
+    buf, K = slam.buf, len(slam.buf)
+    arrays = {f"mapper.{k}": v for k, v in slam.mapper.state_arrays().items()}
+    arrays.update(
+        poses=buf.poses.numpy()[:K].copy(),
+        disp=buf.disp.numpy()[:K].copy(),
+        depth_prior=buf.depth_prior[:K].numpy().copy(),
+        prior_conf=buf.prior_conf[:K].numpy().copy(),
+        scales=buf.scales[:K].numpy().copy(),
+        exposure=buf.exposure.numpy()[:K].copy(),
+        timestamps=np.array(buf.timestamps),
+        frame_index=np.array(buf.frame_index, dtype=np.int64),
+        kf_frames=np.array(kf_frames, dtype=np.int64),
+        **slam.tracker.graph.state_arrays(correspondence_store(path)),
+        **(slam.tracker.tracks.state_arrays() if slam.tracker.tracks is not None else {}),
+        **(slam.tracker.odometry.state_arrays() if slam.tracker.odometry is not None else {}),
+        **slam.tracker.mcba.state_arrays(),
+        mapped_keys=np.array(sorted(slam.mapper.placed), dtype=np.int64),
+        keyframe_files=np.array(_save_keyframe_files(slam, keyframe_store(path)), dtype=str).reshape(-1),
+        meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": slam.cfg.to_dict(), "n_frames": len(slam.seq), "seconds": slam.seconds, "health": slam.tracker.health, "lost": slam.tracker.lost, "kept": slam.tracker.kept, "carried": slam.tracker._carried, "lost_span": slam.tracker._lost_span, "frame_motion": {str(k): v for k, v in slam.tracker.frame_motion.items()}})),
+    )
+    with atomic_write(path, "wb") as f:
+        np.savez(f, **arrays)
+    slam.tracker.graph.prune_store(correspondence_store(path))  # segments only the replaced checkpoint used
+    keep = set(arrays["keyframe_files"].tolist())
+    for old in keyframe_store(path).glob("kf*.npz"):
+        if old.name not in keep:
+            old.unlink(missing_ok=True)
 
-    def _save_keyframe_files(self, store: Path) -> list:
-        """One file per mapped keyframe (``kf<k>_<content digest>.npz``: ``targets_cam<c>``,
-        the full-resolution mapping depth targets, none for exact sensor depth, which is
-        re-read; ``mapped_depth`` [C,h,w]); a file already there is not written again."""
-        import hashlib
+def _save_keyframe_files(slam, store: Path) -> list:
+    """One file per mapped keyframe (``kf<k>_<content digest>.npz``: ``targets_cam<c>``,
+    the full-resolution mapping depth targets, none for exact sensor depth, which is
+    re-read; ``mapped_depth`` [C,h,w]); a file already there is not written again."""
+    import hashlib
 
-        from ..io import atomic_write
+    from ..io import atomic_write
 
-        store.mkdir(parents=True, exist_ok=True)
-        names = []
-        for k in sorted(self._mapped_depth):
-            arrays = {f"targets_cam{c}": np.asarray(self.buf.targets[k][c] if not self.exact_depth else np.zeros(0), np.float32) for c in range(len(self.seq.rig))}
-            arrays["mapped_depth"] = np.asarray(self._mapped_depth[k], np.float64)
-            digest = hashlib.blake2b(digest_size=10)
-            for v in arrays.values():
-                digest.update(np.ascontiguousarray(v).tobytes())
-            name = f"kf{k:05d}_{digest.hexdigest()}.npz"
-            if not (store / name).is_file():
-                with atomic_write(store / name, "wb") as f:
-                    np.savez(f, **arrays)
-            names.append(name)
-        return names
+    store.mkdir(parents=True, exist_ok=True)
+    names = []
+    for k in sorted(slam.mapper.placed):
+        arrays = {f"targets_cam{c}": np.asarray(slam.buf.targets[k][c] if not slam.tracker.exact_depth else np.zeros(0), np.float32) for c in range(len(slam.seq.rig))}
+        arrays["mapped_depth"] = np.asarray(slam.mapper.placed[k], np.float64)
+        digest = hashlib.blake2b(digest_size=10)
+        for v in arrays.values():
+            digest.update(np.ascontiguousarray(v).tobytes())
+        name = f"kf{k:05d}_{digest.hexdigest()}.npz"
+        if not (store / name).is_file():
+            with atomic_write(store / name, "wb") as f:
+                np.savez(f, **arrays)
+        names.append(name)
+    return names
 
-    def load_checkpoint(self, path) -> tuple[int, list]:
-        """Restore the state saved by :meth:`save_checkpoint`; returns (next frame, keyframe frames)."""
-        import json
+def load_checkpoint(slam, path) -> tuple[int, list]:
+    """Restore the state saved by :meth:`save_checkpoint`; returns (next frame, keyframe frames)."""
+    import json
 
-        import warp as wp
+    import warp as wp
 
-        from ..errors import InputError
+    from ..errors import InputError
 
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+        meta = json.loads(str(a["meta"]))
+    except (OSError, ValueError, KeyError) as e:
+        raise InputError(path, None, f"unreadable checkpoint ({e})") from None
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(path, None, f"checkpoint was written by an older version (format {meta.get('format', 1)}, this version reads {CHECKPOINT_FORMAT}); start without --resume")
+    if meta["config"] != slam.cfg.to_dict() or meta["n_frames"] != len(slam.seq):
+        raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
+    try:  # the format is the current one: a missing array means a damaged file
+        buf = slam.buf
+        for k, fi in enumerate(a["frame_index"]):
+            frame = slam.seq[int(fi)]
+            buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
+            if slam.tracker.keypoints is not None:  # deterministic from the images: detected again, not stored
+                views = slam.tracker.keypoints.detect(frame.images, frame.depths if slam.tracker.exact_depth else None)
+                slam.tracker.keypoints.keep(k, views)
+                if slam.tracker.tracks is not None:
+                    slam.tracker.tracks.add_views(k, views)
+        wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
+        grids = buf.scales.numpy()
+        grids[: len(a["scales"])] = a["scales"]
+        buf.scales.assign(grids)
+        exposure = buf.exposure.numpy()
+        exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
+        buf.exposure.assign(exposure)
+        if slam.tracker.tracks is not None:
+            try:
+                slam.tracker.tracks.load_state_arrays(a)
+            except ValueError as e:
+                raise InputError(path, "tracks.parent", f"{e}; start without --resume") from None
+        if slam.tracker.odometry is not None:
+            try:
+                slam.tracker.odometry.load_state_arrays(a, lambda i: slam.tracker.keypoints.detect(slam.seq[i].images, slam.seq[i].depths if slam.tracker.exact_depth else None))
+            except ValueError as e:
+                raise InputError(path, "odometry.tracks.parent", f"{e}; start without --resume") from None
+        slam.tracker.mcba.load_state_arrays(a)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                a = {k: z[k] for k in z.files}
-            meta = json.loads(str(a["meta"]))
-        except (OSError, ValueError, KeyError) as e:
-            raise InputError(path, None, f"unreadable checkpoint ({e})") from None
-        if meta.get("format") != CHECKPOINT_FORMAT:
-            raise InputError(path, None, f"checkpoint was written by an older version (format {meta.get('format', 1)}, this version reads {CHECKPOINT_FORMAT}); start without --resume")
-        if meta["config"] != self.cfg.to_dict() or meta["n_frames"] != len(self.seq):
-            raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
-        try:  # the format is the current one: a missing array means a damaged file
-            buf = self.buf
-            for k, fi in enumerate(a["frame_index"]):
-                frame = self.seq[int(fi)]
-                buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
-                if self.keypoints is not None:  # deterministic from the images: detected again, not stored
-                    views = self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
-                    self.keypoints.keep(k, views)
-                    if self.tracks is not None:
-                        self.tracks.add_views(k, views)
-            wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
-            grids = buf.scales.numpy()
-            grids[: len(a["scales"])] = a["scales"]
-            buf.scales.assign(grids)
-            exposure = buf.exposure.numpy()
-            exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
-            buf.exposure.assign(exposure)
-            if self.tracks is not None:
-                try:
-                    self.tracks.load_state_arrays(a)
-                except ValueError as e:
-                    raise InputError(path, "tracks.parent", f"{e}; start without --resume") from None
-            if self.odometry is not None:
-                try:
-                    self.odometry.load_state_arrays(a, lambda i: self.keypoints.detect(self.seq[i].images, self.seq[i].depths if self.exact_depth else None))
-                except ValueError as e:
-                    raise InputError(path, "odometry.tracks.parent", f"{e}; start without --resume") from None
-            self.mcba.load_state_arrays(a)
-            try:
-                self.graph.load_state_arrays(a, correspondence_store(path))
-            except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
-                raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
-            try:
-                files = {}
-                for k, name in zip(a["mapped_keys"], a["keyframe_files"]):
-                    with np.load(keyframe_store(path) / str(name), allow_pickle=False) as z:
-                        files[int(k)] = {n: z[n] for n in z.files}
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-                raise InputError(keyframe_store(path), None, f"unreadable checkpoint keyframe file ({e}); start without --resume") from None
-            self._mapped_depth = {k: f["mapped_depth"] for k, f in files.items()}
-            if not self.exact_depth:  # estimated targets: restore them as they were
-                depths = {k: [f[f"targets_cam{c}"] for c in range(len(self.seq.rig))] for k, f in files.items()}
-            else:
-                depths = {k: self.mapping_depths(self.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
-            self.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
-            self.seconds = meta["seconds"]
-            self.health = meta["health"]
-            self.lost, self._carried, self._lost_span = [int(k) for k in meta["lost"]], bool(meta["carried"]), meta["lost_span"]
-            self.kept = [int(k) for k in meta["kept"]]
-            self.frame_motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
-            kf_frames = [int(v) for v in a["kf_frames"]]
-        except KeyError as e:
-            raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None
-        return int(meta["next_frame"]), kf_frames
+            slam.tracker.graph.load_state_arrays(a, correspondence_store(path))
+        except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
+        try:
+            files = {}
+            for k, name in zip(a["mapped_keys"], a["keyframe_files"]):
+                with np.load(keyframe_store(path) / str(name), allow_pickle=False) as z:
+                    files[int(k)] = {n: z[n] for n in z.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(keyframe_store(path), None, f"unreadable checkpoint keyframe file ({e}); start without --resume") from None
+        slam.mapper.placed = {k: f["mapped_depth"] for k, f in files.items()}
+        if not slam.tracker.exact_depth:  # estimated targets: restore them as they were
+            depths = {k: [f[f"targets_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items()}
+        else:
+            depths = {k: slam.tracker.mapping_depths(slam.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
+        slam.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
+        slam.seconds = meta["seconds"]
+        slam.tracker.health = meta["health"]
+        slam.tracker.lost, slam.tracker._carried, slam.tracker._lost_span = [int(k) for k in meta["lost"]], bool(meta["carried"]), meta["lost_span"]
+        slam.tracker.kept = [int(k) for k in meta["kept"]]
+        slam.tracker.frame_motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
+        kf_frames = [int(v) for v in a["kf_frames"]]
+    except KeyError as e:
+        raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None
+    return int(meta["next_frame"]), kf_frames
+
 
 
 def keyframe_store(checkpoint) -> Path:

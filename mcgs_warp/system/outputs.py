@@ -112,7 +112,7 @@ def prior_errors(slam) -> tuple[float | None, float | None]:
     from ..frontend.depth import grid_depth
 
     buf, seq = slam.buf, slam.seq
-    if not slam.prior.metric or slam.exact_depth:
+    if not slam.tracker.prior.metric or slam.tracker.exact_depth:
         return None, None
     raw, scaled = [], []
     for k in range(len(buf)):
@@ -209,26 +209,26 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
         "depth_coverage": covered / with_depth if with_depth else None,  # fraction of exact-depth pixels the render gives a depth (depth_l1_m scores only those)
         "map_coverage_per_camera": {spec.name: _quantiles(covers[c]) for c, spec in enumerate(rig.cameras)},  # share of a keyframe view's pixels the map covers (rendered alpha > 0.5): min and median over keyframes
-        "depth_source": slam.prior.name,
+        "depth_source": slam.tracker.prior.name,
         "prior_l1_m": prior_l1,  # the inexact prior against exact depth, before JDSA ...
         "prior_jdsa_l1_m": prior_jdsa_l1,  # ... and after its scale grids (equal with --no-jdsa)
-        "jdsa": slam.jdsa_active,
+        "jdsa": slam.tracker.jdsa_active,
         "correspondences": slam.cfg.tracking.correspondences,
         "n_gaussians": len(slam.mapper.map),
         "n_keyframes": len(buf),
-        "loop_edges": int(sum(bool(c.accepted) for c in slam.loops)),  # revisit candidates global BA confirmed
+        "loop_edges": int(sum(bool(c.accepted) for c in slam.tracker.loops)),  # revisit candidates global BA confirmed
         "n_frames": len(seq),
         "seconds_total": float(seconds_total),
-        "tracking_failures": len(slam.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)
-        "tracking_failure_frames": slam.failures,
-        "tracking_lost_frames": [int(buf.frame_index[k]) for k in slam.lost],  # keyframes nothing tracked or relocalized (kept at the prediction, not mapped)
-        "confident_fraction": _quantiles([h["confident"] for h in slam.health]),  # per keyframe solve: fraction of its grid pixels with a confident correspondence (min, median)
-        "confident_fraction_per_camera": {c.name: _quantiles([h["confident_per_camera"][i] for h in slam.health]) for i, c in enumerate(seq.rig.cameras)} if slam.health else None,
-        "keypoint_inliers": _quantiles([h["keypoint_inliers"] or 0 for h in slam.health]) if slam.keypoints is not None else None,  # per keyframe solve: PnP inliers of its keypoint pose (0: none; min, median)
-        "keypoint_anchored": sum(h["keypoint_inliers"] is not None for h in slam.health) if slam.keypoints is not None else None,  # keyframe solves started from a keypoint pose (else constant velocity)
-        "dense_sigma_px": _quantiles([h["dense_sigma"] * buf.stride for h in slam.health if h.get("dense_sigma") is not None]),  # per keyframe solve: the dense residuals' measured noise (full-resolution px; min, median)
-        "dense_correlation_factor": _quantiles([h["dense_kappa"] for h in slam.health if h.get("dense_kappa") is not None]),  # ... and how many grid pixels count as one independent measurement (kappa, mcgs_warp/ba/variance.py)
-        "metric_scale": slam.metric_scale,
+        "tracking_failures": len(slam.tracker.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)
+        "tracking_failure_frames": slam.tracker.failures,
+        "tracking_lost_frames": [int(buf.frame_index[k]) for k in slam.tracker.lost],  # keyframes nothing tracked or relocalized (kept at the prediction, not mapped)
+        "confident_fraction": _quantiles([h["confident"] for h in slam.tracker.health]),  # per keyframe solve: fraction of its grid pixels with a confident correspondence (min, median)
+        "confident_fraction_per_camera": {c.name: _quantiles([h["confident_per_camera"][i] for h in slam.tracker.health]) for i, c in enumerate(seq.rig.cameras)} if slam.tracker.health else None,
+        "keypoint_inliers": _quantiles([h["keypoint_inliers"] or 0 for h in slam.tracker.health]) if slam.tracker.keypoints is not None else None,  # per keyframe solve: PnP inliers of its keypoint pose (0: none; min, median)
+        "keypoint_anchored": sum(h["keypoint_inliers"] is not None for h in slam.tracker.health) if slam.tracker.keypoints is not None else None,  # keyframe solves started from a keypoint pose (else constant velocity)
+        "dense_sigma_px": _quantiles([h["dense_sigma"] * buf.stride for h in slam.tracker.health if h.get("dense_sigma") is not None]),  # per keyframe solve: the dense residuals' measured noise (full-resolution px; min, median)
+        "dense_correlation_factor": _quantiles([h["dense_kappa"] for h in slam.tracker.health if h.get("dense_kappa") is not None]),  # ... and how many grid pixels count as one independent measurement (kappa, mcgs_warp/ba/variance.py)
+        "metric_scale": slam.tracker.metric_scale,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
     gt_xyz, times = None, traj.timestamps
@@ -245,12 +245,12 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         tm, aligned, gt_xyz, times = sim3
         se3, se3_aligned, _ = evaluate(traj, seq.groundtruth, with_scale=False)
         # RPE as a user compares it: metric runs as they are, others after the Sim(3) scale
-        rpe = se3 if slam.metric_scale else tm
-        metrics.update({"rpe_trans_m": rpe.rpe_trans_m, "rpe_rot_deg": rpe.rpe_rot_deg, "rpe_delta_frames": rpe.rpe_delta, "rpe_scale_corrected": not slam.metric_scale})
+        rpe = se3 if slam.tracker.metric_scale else tm
+        metrics.update({"rpe_trans_m": rpe.rpe_trans_m, "rpe_rot_deg": rpe.rpe_rot_deg, "rpe_delta_frames": rpe.rpe_delta, "rpe_scale_corrected": not slam.tracker.metric_scale})
         if len(buf) >= 3:  # keyframes only: the poses the run estimated, none interpolated
             kf_traj = Trajectory(np.array(buf.timestamps), kf_poses)
             metrics.update({"ate_keyframes_rmse_m": evaluate(kf_traj, seq.groundtruth)[0].ate_rmse_m, "ate_keyframes_se3_rmse_m": evaluate(kf_traj, seq.groundtruth, with_scale=False)[0].ate_rmse_m})
-        odo = slam.odometry
+        odo = slam.tracker.odometry
         if odo is not None and len(odo.poses) >= 3:  # the keypoint odometry alone, every frame it placed: the sparse core the dense system must not fall behind
             fs = sorted(odo.poses)
             try:
@@ -260,9 +260,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
                 pass  # too few of its frames match the ground truth
         metrics.update({"ate_rmse_m": tm.ate_rmse_m, "path_length_m": tm.path_length_m, "sim3_scale": tm.scale, "ate_percent_of_path": 100.0 * tm.ate_rmse_m / max(tm.path_length_m, 1e-12), "ate_se3_rmse_m": se3.ate_rmse_m, "ate_se3_percent_of_path": 100.0 * se3.ate_rmse_m / max(tm.path_length_m, 1e-12)})
         # a run that claims metric scale is judged without rescaling: the plot shows what a user gets
-        aligned, label = (se3_aligned, "SE(3) ATE") if slam.metric_scale else (aligned, "Sim(3) ATE")
-        write_tum(out / "groundtruth_in_map.txt", groundtruth_in_map(traj, seq.groundtruth, with_scale=not slam.metric_scale))
-        why = scale_warning(slam.metric_scale, tm.scale)
+        aligned, label = (se3_aligned, "SE(3) ATE") if slam.tracker.metric_scale else (aligned, "Sim(3) ATE")
+        write_tum(out / "groundtruth_in_map.txt", groundtruth_in_map(traj, seq.groundtruth, with_scale=not slam.tracker.metric_scale))
+        why = scale_warning(slam.tracker.metric_scale, tm.scale)
         if why:
             from ..data.sequence import warn
 

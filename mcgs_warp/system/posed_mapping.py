@@ -23,7 +23,8 @@ from ..data.trajectory import Trajectory
 from ..errors import InputError
 from ..geometry import invert
 from .config import RunConfig
-from .slam import SLAM, interpolate_pose
+from .slam import SLAM
+from .tracker import Tracker, interpolate_pose
 
 
 def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarray:
@@ -44,16 +45,13 @@ def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarr
     return out
 
 
-class PosedMapping(SLAM):
-    """The SLAM pipeline with the rig poses given (module docstring). ``poses``: the rig
-    body's trajectory; ``source``: where it came from (errors name it)."""
+class PosedTracker(Tracker):
+    """The tracking stage with the rig poses given (``given`` [N,4,4] per frame): each keyframe
+    starts at its pose and MCBA holds every pose of the window, so it solves only the depths."""
 
-    def __init__(self, sequence, config: RunConfig, poses: Trajectory, refine_poses: bool = False, source=None, device=None, progress=None):
-        config.tracking.keypoints = False  # nothing to track or relocalize
-        config.refinement.poses = bool(refine_poses)
-        given = poses_at(poses, sequence.timestamps, source)
-        self.given = invert(given[0])[None] @ given  # in the first frame's rig frame
-        super().__init__(sequence, config, device=device, progress=progress)
+    def __init__(self, sequence, config: RunConfig, buffer, given: np.ndarray):
+        self.given = given
+        super().__init__(sequence, config, buffer)
 
     def given_pose(self, index: int):
         return self.given[index]
@@ -67,3 +65,18 @@ class PosedMapping(SLAM):
 
     def _filler(self, fa: int, fb: int):
         return self.given
+
+
+class PosedMapping(SLAM):
+    """The SLAM pipeline with the rig poses given (module docstring). ``poses``: the rig
+    body's trajectory; ``source``: where it came from (errors name it)."""
+
+    def __init__(self, sequence, config: RunConfig, poses: Trajectory, refine_poses: bool = False, source=None, device=None, progress=None):
+        config.tracking.keypoints = False  # nothing to track or relocalize
+        config.refinement.poses = bool(refine_poses)
+        given = poses_at(poses, sequence.timestamps, source)
+        self.given = invert(given[0])[None] @ given  # in the first frame's rig frame
+        super().__init__(sequence, config, device=device, progress=progress)
+
+    def make_tracker(self) -> Tracker:
+        return PosedTracker(self.seq, self.cfg, self.buf, self.given)

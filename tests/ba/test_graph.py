@@ -371,13 +371,13 @@ def test_false_loop_candidates_are_rejected(loop_problem):
 
 
 def test_a_keyframe_without_overlapping_views_is_still_linked(synthetic_seq):
-    """The SLAM loop keeps each camera of a new keyframe linked to the previous keyframe when
+    """The tracker keeps each camera of a new keyframe linked to the previous keyframe when
     the overlap rule found it no partner (it would otherwise not be tracked at all), and adds
     nothing for cameras that have one; the graph's bookkeeping asks without adding."""
     from mcgs_warp.system.config import RunConfig
     from mcgs_warp.system.slam import SLAM
 
-    slam = SLAM(synthetic_seq, RunConfig())
+    slam = SLAM(synthetic_seq, RunConfig()).tracker
     C = len(synthetic_seq.rig)
     slam.graph.add([(1, 0, 0, 0), (0, 0, 1, 0)])
     slam._link_newest(1)

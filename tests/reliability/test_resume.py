@@ -93,22 +93,22 @@ def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypat
 
     import mcgs_warp.io as io
     from mcgs_warp.rig import CameraSpec, Rig
-    from mcgs_warp.system.slam import SLAM
+    from mcgs_warp.system.checkpoint import _save_keyframe_files
 
     rig = Rig([CameraSpec("a", "pinhole", 8, 6, (5.0, 5.0, 3.5, 2.5)), CameraSpec("b", "pinhole", 4, 4, (3.0, 3.0, 1.5, 1.5))])
     rng = np.random.default_rng(0)
-    fake = SimpleNamespace(exact_depth=False, seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), _mapped_depth={})
+    fake = SimpleNamespace(tracker=SimpleNamespace(exact_depth=False), seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), mapper=SimpleNamespace(placed={}))
     for k in range(5):
         fake.buf.targets[k] = [rng.random((6, 8)).astype(np.float32), rng.random((4, 4)).astype(np.float32)]
-        fake._mapped_depth[k] = rng.random((2, 3, 4))
+        fake.mapper.placed[k] = rng.random((2, 3, 4))
     written, real = [], io.atomic_write
     monkeypatch.setattr(io, "atomic_write", lambda path, *a, **kw: (written.append(path.name), real(path, *a, **kw))[1])
-    first = SLAM._save_keyframe_files(fake, tmp_path / "kf")
+    first = _save_keyframe_files(fake, tmp_path / "kf")
     assert len(written) == 5 and first == sorted(written)
     fake.buf.targets[3][1] = fake.buf.targets[3][1] + 1
     written.clear()
-    second = SLAM._save_keyframe_files(fake, tmp_path / "kf")
+    second = _save_keyframe_files(fake, tmp_path / "kf")
     assert written == [second[3]] and second[3] != first[3] and second[:3] == first[:3]
     with np.load(tmp_path / "kf" / second[3]) as z:
         np.testing.assert_array_equal(z["targets_cam1"], fake.buf.targets[3][1])
-        np.testing.assert_array_equal(z["mapped_depth"], fake._mapped_depth[3])
+        np.testing.assert_array_equal(z["mapped_depth"], fake.mapper.placed[3])

@@ -152,10 +152,10 @@ def test_a_failed_dense_solve_keeps_the_keypoint_pose_through_mcba(tmp_path, cap
     run drifts (2.4 cm at frame 8)."""
     from mcgs_warp.data.trajectory import read_tum
     from mcgs_warp.geometry import invert, pose_distance
-    from mcgs_warp.system.keyframe_step import KeyframeStep
+    from mcgs_warp.system.tracker import Tracker
 
     bad = 5
-    measure, recover = KeyframeStep.measure, KeyframeStep._recover
+    measure, recover = Tracker.measure, Tracker._recover
     kept_at = {}
 
     def corrupted(self, refresh=(), guided_new=False):
@@ -172,8 +172,8 @@ def test_a_failed_dense_solve_keeps_the_keypoint_pose_through_mcba(tmp_path, cap
         kept_at[k] = self.buf.get_poses()[k]
         return tracked
 
-    monkeypatch.setattr(KeyframeStep, "measure", corrupted)
-    monkeypatch.setattr(KeyframeStep, "_recover", recorded)
+    monkeypatch.setattr(Tracker, "measure", corrupted)
+    monkeypatch.setattr(Tracker, "_recover", recorded)
     n = 9
     generate(tmp_path / "data", n_cameras=2, seed=3, progress=False, depth="exact", trajectory=rig_trajectory(n))
     cfg = config()

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from mcgs_warp.geometry import se3_exp
-from mcgs_warp.system.slam import SLAM
+from mcgs_warp.system.tracker import Tracker
 
 
 def _curve(n):
@@ -19,7 +19,7 @@ def _curve(n):
 
 
 def _slam(truth, kf, filler):
-    """The parts of a SLAM that :meth:`SLAM.trajectory` reads: keyframe poses, times and
+    """The parts of a tracker that :meth:`Tracker.trajectory` reads: keyframe poses, times and
     frames, frame times, image motions, and the filler's poses."""
     stamps = 0.1 * np.arange(len(truth))
     buf = SimpleNamespace(get_poses=lambda: truth[kf], timestamps=list(stamps[kf]), frame_index=list(kf))
@@ -31,8 +31,8 @@ def test_frames_between_keyframes_follow_the_odometry():
     kf = [0, 4, 8]
     G = se3_exp([3.0, -1.0, 2.0, 0.1, -0.4, 0.2])  # the odometry's own world frame
     odometry = {i: G @ T for i, T in enumerate(truth)}
-    placed = SLAM.trajectory(_slam(truth, kf, odometry), kf).poses
+    placed = Tracker.trajectory(_slam(truth, kf, odometry), kf).poses
     np.testing.assert_allclose(placed, truth, atol=1e-9)
-    interpolated = SLAM.trajectory(_slam(truth, kf, None), kf).poses  # no odometry: in time
+    interpolated = Tracker.trajectory(_slam(truth, kf, None), kf).poses  # no odometry: in time
     assert np.linalg.norm(interpolated[1:4, :3, 3] - truth[1:4, :3, 3], axis=1).max() > 0.05
     np.testing.assert_allclose(interpolated[kf], truth[kf], atol=1e-9)

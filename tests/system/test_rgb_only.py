@@ -155,7 +155,7 @@ def test_correspondence_resolution_follows_the_depth_source(sequences):
     from mcgs_warp.system.slam import SLAM
 
     for mode, finest, patch in (("none", 0, 4), ("exact", 1, 8)):
-        slam = SLAM(open_sequence(sequences[mode]), RunConfig())
+        slam = SLAM(open_sequence(sequences[mode]), RunConfig()).tracker
         assert slam.exact_depth == (mode == "exact")
         assert (slam.flow.dis.getFinestScale(), slam.flow.dis.getPatchSize()) == (finest, patch), mode
         assert slam.guided.dis is slam.flow and slam.selector.flow.dis.getFinestScale() == 1
@@ -169,10 +169,10 @@ def test_a_run_without_metric_scale_says_so(sequences, capsys):
     from mcgs_warp.system.slam import SLAM
 
     rig = SLAM(open_sequence(sequences["none"]), RunConfig())
-    assert rig.metric_scale and "monocular" not in capsys.readouterr().err
+    assert rig.tracker.metric_scale and "monocular" not in capsys.readouterr().err
     mono = SLAM(CameraSubset(open_sequence(sequences["none"]), [0]), RunConfig())
     err = capsys.readouterr().err.strip().splitlines()
-    assert not mono.metric_scale and len(err) == 1 and "the run is monocular" in err[0] and "Sim(3) ATE" in err[0], err
+    assert not mono.tracker.metric_scale and len(err) == 1 and "the run is monocular" in err[0] and "Sim(3) ATE" in err[0], err
 
 
 def test_a_camera_without_overlapping_neighbour_ends_covered(tmp_path):
