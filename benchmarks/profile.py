@@ -119,12 +119,12 @@ def main() -> int:
     ap.add_argument("--cprofile", type=Path, default=None)
     args = ap.parse_args()
 
-    from mcgs_warp.cli import init_warp
-
-    init_warp()
     import warp as wp
 
-    wp.config.quiet = True  # no line per kernel module loaded
+    from mcgs_warp.cli import init_warp
+
+    wp.config.log_level = wp.LOG_WARNING  # as the command line: no banner, no line per kernel module loaded
+    init_warp()
     clock = StageClock()
     clock.install()
     from mcgs_warp.system.run import run_sequence

@@ -96,12 +96,14 @@ def blend_kernel(
     out_alpha: wp.array(dtype=float, ndim=3),  # [C,H,W]
     out_T: wp.array(dtype=float, ndim=3),  # [C,H,W] final transmittance
     n_contrib: wp.array(dtype=wp.int32, ndim=3),  # [C,H,W]
+    out_median: wp.array(dtype=float, ndim=3),  # [C,H,W] m: median depth (0 where alpha stays below 0.5)
 ):
     c, yb, x = wp.tid()
     y = yb + row0
     cam = cameras[c]
     color = wp.vec3(0.0)
     dacc = float(0.0)
+    median = float(0.0)
     T = float(1.0)
     last = int(0)
     if x < cam.width and y < cam.height:
@@ -121,8 +123,11 @@ def blend_kernel(
             w = alpha * T
             color += w * record_colors[j]
             dacc += w * r[7]
+            if T >= 0.5 and next_T < 0.5:
+                median = r[7]  # the splat where the transmittance crosses 0.5
             T = next_T
             last = j - start + 1
+    out_median[c, y, x] = median
     out_color[c, y, x] = color
     a = 1.0 - T
     if a > 0.0:
@@ -164,8 +169,8 @@ def splat_box(r: splat_record, x0: int, y0: int, x1: int, y1: int):
 
 
 #: One pixel's running state in the tile blender: transmittance (negated once the pixel
-#: is finished), colour sum (3), depth sum, entries walked to the last contributor.
-blend_state = wp.types.vector(length=6, dtype=wp.float32)
+#: is finished), colour sum (3), depth sum, entries walked to the last contributor, median depth.
+blend_state = wp.types.vector(length=7, dtype=wp.float32)
 
 
 @wp.kernel
@@ -184,6 +189,7 @@ def blend_tiles_kernel(
     out_alpha: wp.array(dtype=float, ndim=3),
     out_T: wp.array(dtype=float, ndim=3),
     n_contrib: wp.array(dtype=wp.int32, ndim=3),
+    out_median: wp.array(dtype=float, ndim=3),
 ):
     """:func:`blend_kernel` with one thread per tile (the CPU's form, launched over
     ``(C * tiles_y, tiles_x)``, camera-major, so that bands of rows balance across
@@ -205,7 +211,7 @@ def blend_tiles_kernel(
     ye = wp.min(y0 + TILE_SIZE, H)
     for y in range(y0, ye):
         for x in range(x0, xe):
-            state[c, y, x] = blend_state(1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            state[c, y, x] = blend_state(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     x1 = wp.min(xe, cam.width)
     y1 = wp.min(ye, cam.height)
     if x0 < x1 and y0 < y1:
@@ -237,7 +243,10 @@ def blend_tiles_kernel(
                         continue
                     w = alpha * T
                     color = wp.vec3(st[1], st[2], st[3]) + w * cj
-                    state[c, y, x] = blend_state(next_T, color[0], color[1], color[2], st[4] + w * r[7], rank)
+                    median = st[6]
+                    if T >= 0.5 and next_T < 0.5:
+                        median = r[7]  # the splat where the transmittance crosses 0.5
+                    state[c, y, x] = blend_state(next_T, color[0], color[1], color[2], st[4] + w * r[7], rank, median)
     for y in range(y0, ye):
         for x in range(x0, xe):
             st = state[c, y, x]
@@ -251,6 +260,7 @@ def blend_tiles_kernel(
             out_alpha[c, y, x] = a
             out_T[c, y, x] = T
             n_contrib[c, y, x] = int(st[5])
+            out_median[c, y, x] = st[6]
 
 
 #: The tile backward's constants of one pixel: dL/dC (3), dL/d depth sum, the depth sum,

@@ -230,8 +230,6 @@ def adaptive_window_kernel(
     k = picked[j, y, x]
     if k < 0:
         return
-    H = depth.shape[0]
-    W = depth.shape[1]
     cand = candidates[k]
     z = candidate_depth(depth, cand, y, x)
     cam = src_cams[s]

@@ -136,8 +136,10 @@ def project_gaussians(means, quats, log_scales, opacity_logits, cam, T_w_c, near
     }
 
 
-def render(means, quats, log_scales, opacity_logits, colors, cam, T_w_c, near=NEAR, far=FAR):
-    """Brute-force render of one camera. Returns ``(color [H,W,3], depth [H,W], alpha [H,W])``."""
+def render(means, quats, log_scales, opacity_logits, colors, cam, T_w_c, near=NEAR, far=FAR, median: bool = False):
+    """Brute-force render of one camera. Returns ``(color [H,W,3], depth [H,W], alpha [H,W])``,
+    and with ``median`` the median depth [H,W] too (the depth of the splat at which the
+    transmittance falls below 0.5; 0 where it never does)."""
     proj = project_gaussians(means, quats, log_scales, opacity_logits, cam, T_w_c, near, far)
     colors = np.asarray(colors, dtype=np.float64)
     H, W = cam.height, cam.width
@@ -148,6 +150,7 @@ def render(means, quats, log_scales, opacity_logits, colors, cam, T_w_c, near=NE
     D = np.zeros((H, W))
     T = np.ones((H, W))
     done = np.zeros((H, W), dtype=bool)
+    M = np.zeros((H, W))
     for i in order:
         mu, q, o = proj["mean2d"][i], proj["conic"][i], proj["opacity"][i]
         dx, dy = xs - mu[0], ys - mu[1]
@@ -161,7 +164,8 @@ def render(means, quats, log_scales, opacity_logits, colors, cam, T_w_c, near=NE
         w = np.where(use, alpha * T, 0.0)
         C += w[..., None] * colors[i]
         D += w * proj["depth"][i]
+        M = np.where(use & (T >= 0.5) & (next_T < 0.5), proj["depth"][i], M)
         T = np.where(use, next_T, T)
     A = 1.0 - T
     depth_img = np.where(A > 0, D / np.where(A > 0, A, 1.0), 0.0)
-    return C, depth_img, A
+    return (C, depth_img, A, M) if median else (C, depth_img, A)

@@ -138,6 +138,7 @@ class Rendered:
     alpha: wp.array  # [C,H,W] float, coverage 1 - T
     transmittance: wp.array  # [C,H,W] float, final T
     n_contrib: wp.array  # [C,H,W] int32, list entries walked up to the last contributor
+    median_depth: wp.array  # [C,H,W] float, m: depth of the splat where the transmittance crosses 0.5 (0 where alpha stays below 0.5; no adjoint)
     projection: Projection
     bins: TileBins
     records: wp.array  # [count] splat_record, splats in sorted-list order
@@ -246,6 +247,7 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
         wp.empty(shape, dtype=float, device=dev),
         wp.empty(shape, dtype=float, device=dev),
         wp.empty(shape, dtype=wp.int32, device=dev),
+        wp.empty(shape, dtype=float, device=dev),
         proj,
         bins,
         records,
@@ -253,7 +255,7 @@ def blend(proj: Projection, bins: TileBins, colors: wp.array, views: Views) -> R
     )
     tiles = (views.tiles_x, views.tiles_x * views.tiles_y)
 
-    outputs = [out.color, out.depth, out.alpha, out.transmittance, out.n_contrib]
+    outputs = [out.color, out.depth, out.alpha, out.transmittance, out.n_contrib, out.median_depth]
     if dev.is_cuda:  # one thread per pixel
         wp.launch(blend_kernel, dim=shape, inputs=[records, record_colors, bins.tile_start, bins.tile_end, views.cameras, *tiles, 0], outputs=outputs, device=dev)
         return out

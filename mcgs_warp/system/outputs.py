@@ -4,12 +4,13 @@
 * ``map.usdc`` (``UsdVol.ParticleField3DGaussianSplat`` + keyframe cameras), ``map.ply`` (3DGS)
 * ``renders/keyframe_<k>_<camera>.png``: input | render | depth, for a few keyframes, and
   ``renders/frame_<i>_<camera>.png``: input | render of one frame the map was not fitted to
-* ``depth/keyframe_<k>_<camera>.png``: every keyframe view's rendered depth, 16-bit
-  millimetres, 0 = none (what RGB-D datasets use); ``images/keyframe_<k>_<camera>.jpg``: its
+* ``depth/keyframe_<k>_<camera>.png``: every keyframe view's rendered median depth, 16-bit
+  millimetres, 0 = none or covered less than half (what RGB-D datasets use); ``images/keyframe_<k>_<camera>.jpg``: its
   input image (what ``mcgs-slam view`` shows in the keyframe's frustum)
 * ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned; over every frame and over keyframes
   only), evo-style RPE and path length when ground truth exists, PSNR, SSIM over the
-  keyframe views and over held-out non-keyframe frames, depth L1 and its coverage against
+  keyframe views and over held-out non-keyframe frames, depth L1 (median depth; the
+  alpha-normalized depth's beside it) and its coverage against
   the sequence's exact depth (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
   correspondences used, for an inexact prior its error before and after JDSA's scale grids,
   counts and timings
@@ -63,17 +64,18 @@ def groundtruth_in_map(est: Trajectory, gt: Trajectory, with_scale: bool) -> Tra
 
 
 def keyframe_views(slam):
-    """Render every keyframe's views at their final poses, exposure applied:
-    yields (k, c, rendered colour, rendered depth, rendered alpha, input image, frame index)."""
+    """Render every keyframe's views at their final poses, exposure applied: yields (k, c,
+    rendered colour, median depth (where the transmittance crosses 0.5; 0 where the map covers
+    less than half), alpha-normalized depth, rendered alpha, input image, frame index)."""
     m, buf = slam.mapper, slam.buf
     poses = buf.get_poses()
     exposure = m.buf.exposure.numpy()  # [capacity, C, 2] (log a, b)
     for k in range(len(buf)):
         colour, out = m.render(Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device))
-        col, dep, alpha = colour.numpy(), out.depth.numpy(), out.alpha.numpy()
+        col, med, dep, alpha = colour.numpy(), out.median_depth.numpy(), out.depth.numpy(), out.alpha.numpy()
         for c, spec in enumerate(buf.rig.cameras):
             a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
-            yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), dep[c, : spec.height, : spec.width], alpha[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
+            yield k, c, np.clip(a * col[c, : spec.height, : spec.width] + b, 0, 1), med[c, : spec.height, : spec.width], dep[c, : spec.height, : spec.width], alpha[c, : spec.height, : spec.width], buf.images[k][c], buf.frame_index[k]
 
 
 MAX_HELD_OUT_FRAMES = 20  # non-keyframe frames rendered for psnr_nonkeyframe_db (evenly spaced)
@@ -168,10 +170,10 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     # Image metrics over every keyframe view; a few renders beside their inputs.
     n_render = slam.cfg.output.renders
     show = set(np.linspace(0, len(buf) - 1, min(n_render, len(buf))).astype(int).tolist()) if n_render else set()
-    psnrs, ssims, depth_err, covered, with_depth = [], [], [], 0, 0
+    psnrs, ssims, depth_err, mixed_err, covered, with_depth = [], [], [], [], 0, 0
     frames: dict = {}
     covers = [[] for _ in rig.cameras]  # per camera: share of each keyframe view the map covers
-    for k, c, col, dep, alpha, img, fidx in keyframe_views(slam):
+    for k, c, col, dep, mixed, alpha, img, fidx in keyframe_views(slam):
         covers[c].append(float(np.mean(alpha > 0.5)))
         psnrs.append(psnr(col, img))
         ssims.append(ssim(col, img, with_grad=False)[0])
@@ -185,6 +187,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
             covered, with_depth = covered + int(ok.sum()), with_depth + int((sensor > 0).sum())
             if ok.any():
                 depth_err.append(float(np.abs(dep[ok] - sensor[ok]).mean()))
+            ok_mixed = (sensor > 0) & (mixed > 0)
+            if ok_mixed.any():
+                mixed_err.append(float(np.abs(mixed[ok_mixed] - sensor[ok_mixed]).mean()))
         if k in show:
             vmax = float(np.percentile(sensor[sensor > 0], 95)) if sensor is not None and (sensor > 0).any() else float(np.percentile(dep[dep > 0], 95)) if (dep > 0).any() else 1.0
             write_image(out / "renders" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", np.concatenate([img, col, depth_colormap(dep, vmax)], axis=1))
@@ -206,8 +211,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "psnr_nonkeyframe_db": float(np.mean(held_psnr)) if held_psnr else None,  # frames the map was not fitted to
         "ssim_nonkeyframe": float(np.mean(held_ssim)) if held_ssim else None,
         "n_nonkeyframe_views": len(held_psnr),
-        "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,
-        "depth_coverage": covered / with_depth if with_depth else None,  # fraction of exact-depth pixels the render gives a depth (depth_l1_m scores only those)
+        "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,  # the rendered median depth (the depth PNGs') against exact depth
+        "depth_coverage": covered / with_depth if with_depth else None,  # fraction of exact-depth pixels the render gives a median depth (alpha above 0.5; depth_l1_m scores only those)
+        "depth_l1_alpha_normalized_m": float(np.mean(mixed_err)) if mixed_err else None,  # the alpha-normalized depth (mixes faint Gaussians with those behind) over every pixel it covers
         "map_coverage_per_camera": {spec.name: _quantiles(covers[c]) for c, spec in enumerate(rig.cameras)},  # share of a keyframe view's pixels the map covers (rendered alpha > 0.5): min and median over keyframes
         "depth_source": slam.tracker.prior.name,
         "prior_l1_m": prior_l1,  # the inexact prior against exact depth, before JDSA ...

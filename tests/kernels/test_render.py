@@ -19,11 +19,39 @@ def test_render_matches_reference(model, seed, device):
     T = random_pose(rng)
     scene = random_scene(rng, 150, model, T)
     out = render(Gaussians.from_numpy(*scene, device=device), Views.create([cam], T[None], device=device))
-    C, D, A = reference.render(*scene, cam, T)
+    C, D, A, M = reference.render(*scene, cam, T, median=True)
     assert A.mean() > 0.1, "scene should cover a good part of the image"
     np.testing.assert_allclose(out.color.numpy()[0], C, atol=1e-5)
     np.testing.assert_allclose(out.alpha.numpy()[0], A, atol=1e-5)
     np.testing.assert_allclose(out.depth.numpy()[0], D, rtol=1e-5, atol=1e-5)
+    # median depth: the splat where T crosses 0.5; where T lands within rounding of 0.5 the two may pick neighbours
+    near_half = np.abs(A - 0.5) < 1e-4
+    assert (M > 0).mean() > 0.05 and ((M > 0) == (A > 0.5))[~near_half].all()
+    np.testing.assert_allclose(out.median_depth.numpy()[0][~near_half], M[~near_half], rtol=1e-5, atol=1e-5)
+
+
+def test_median_depth_is_the_surface_not_a_mix():
+    """A faint splat (alpha 0.6 at its centre) at 3 m in front of an opaque wall at 25 m: the
+    alpha-normalized depth mixes them (about 12 m, a depth where nothing is); the median depth is the
+    faint splat's where its alpha passes 0.5 and the wall's where it leaves T above 0.5; nothing
+    covered less than half renders median depth 0."""
+    cam = cameras()["pinhole"]
+    wall = np.stack(np.meshgrid(np.linspace(-12, 12, 25), np.linspace(-9, 9, 19)), -1).reshape(-1, 2)
+    n = len(wall)
+    means = np.concatenate([np.c_[wall, np.full(n, 25.0)], [[0.0, 0.0, 3.0]], [[40.0, 0.0, 25.0]]])
+    log_scales = np.log(np.concatenate([np.full((n, 3), 0.8), [[0.3, 0.3, 0.3]], [[0.5, 0.5, 0.5]]]))
+    opacity = np.concatenate([np.full(n, 8.0), [0.4], [-3.0]])  # opaque wall, the faint splat (sigmoid 0.6), a faint lone one
+    colours = np.full((n + 2, 3), 0.5)
+    scene = (means, np.tile([0.0, 0.0, 0.0, 1.0], (n + 2, 1)), log_scales, opacity, colours)
+    out = render(Gaussians.from_numpy(*scene, device="cpu"), Views.create([cam], np.eye(4)[None], device="cpu"))
+    median, mean, alpha = out.median_depth.numpy()[0], out.depth.numpy()[0], out.alpha.numpy()[0]
+    cy, cx = int(round(cam.cy)), int(round(cam.cx))
+    assert 10.0 < mean[cy, cx] < 18.0, mean[cy, cx]  # the mix
+    assert abs(median[cy, cx] - 3.0) < 0.05, median[cy, cx]
+    ring = (mean > 14.5) & (mean < 24.5) & (alpha > 0.9)  # the faint splat in front of the wall with alpha below 0.5 (mean = 25 - 22 alpha)
+    assert ring.any() and np.allclose(median[ring], 25.0, atol=0.5), median[ring][:5]
+    assert (median[alpha < 0.5] == 0).all()
+
 
 
 def test_opaque_scene_stops_at_min_transmittance():
@@ -182,9 +210,9 @@ def test_cpu_tile_kernels_equal_the_per_pixel_kernels():
     shape = (v.n, v.height, v.width)
     assert out.transmittance.numpy().min() < 1e-3  # some pixels stop before the end of their list
     tiles = [v.tiles_x, v.tiles_x * v.tiles_y]
-    ref = [wp.empty(shape, dtype=t, device="cpu") for t in (wp.vec3, float, float, float, wp.int32)]
+    ref = [wp.empty(shape, dtype=t, device="cpu") for t in (wp.vec3, float, float, float, wp.int32, float)]
     wp.launch(blend_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.tile_start, out.bins.tile_end, v.cameras, *tiles, 0], outputs=ref, device="cpu")
-    for name, r in zip(("color", "depth", "alpha", "transmittance", "n_contrib"), ref):
+    for name, r in zip(("color", "depth", "alpha", "transmittance", "n_contrib", "median_depth"), ref):
         np.testing.assert_array_equal(getattr(out, name).numpy(), r.numpy(), err_msg=name)
 
     gC, gD, gA = rng.normal(size=shape + (3,)), rng.normal(size=shape), rng.normal(size=shape)
@@ -223,8 +251,8 @@ def test_cpu_tile_box_keeps_every_pixel_of_long_thin_splats():
     v = Views.create([cam], np.eye(4)[None], device="cpu")
     out = render(g, v)
     shape = (1, v.height, v.width)
-    ref = [wp.empty(shape, dtype=t, device="cpu") for t in (wp.vec3, float, float, float, wp.int32)]
+    ref = [wp.empty(shape, dtype=t, device="cpu") for t in (wp.vec3, float, float, float, wp.int32, float)]
     wp.launch(blend_kernel, dim=shape, inputs=[out.records, out.record_colors, out.bins.tile_start, out.bins.tile_end, v.cameras, v.tiles_x, v.tiles_x * v.tiles_y, 0], outputs=ref, device="cpu")
     assert (out.alpha.numpy() > 0).mean() > 0.01
-    for name, r in zip(("color", "depth", "alpha", "transmittance", "n_contrib"), ref):
+    for name, r in zip(("color", "depth", "alpha", "transmittance", "n_contrib", "median_depth"), ref):
         np.testing.assert_array_equal(getattr(out, name).numpy(), r.numpy(), err_msg=name)
