@@ -46,13 +46,16 @@ def grid_pixels(spec: CameraSpec, stride: int) -> np.ndarray:
 
 
 class KeyframeBuffer:
-    def __init__(self, rig: Rig, stride: int = 8, capacity: int = 64, scale_grid=(4, 6), device=None):
+    """Keyframe state (module docstring). ``capacity``: keyframe slots allocated at first; the
+    device arrays double when a keyframe needs more, so memory follows the keyframes a run
+    has, not the frames of its sequence."""
+
+    def __init__(self, rig: Rig, stride: int = 8, capacity: int = 16, scale_grid=(4, 6), device=None):
         from .kernels import Camera
         from .kernels.ba import grid_rays_kernel
 
         self.rig = rig
         self.stride = stride
-        self.capacity = capacity
         self.device = wp.get_device(device)
         self.reduced = [reduced_camera(c, stride) for c in rig.cameras]
         self.h = max(c.height for c in self.reduced)
@@ -62,12 +65,7 @@ class KeyframeBuffer:
         self.T_b_c = wp.array(matrix_to_transform7(np.stack([c.T_b_c for c in rig.cameras])).astype(np.float32), dtype=wp.transform, device=self.device)
         self.rays = wp.zeros((C, self.h, self.w), dtype=wp.vec3, device=self.device)
         wp.launch(grid_rays_kernel, dim=(C, self.h, self.w), inputs=[self.cameras], outputs=[self.rays], device=self.device)
-        self.poses = wp.zeros(capacity, dtype=wp.transform, device=self.device)  # T_w_b
-        self.disp = wp.zeros((capacity, C, self.h, self.w), dtype=float, device=self.device)
-        self.depth_prior = wp.zeros((capacity, C, self.h, self.w), dtype=float, device=self.device)  # m, 0 = none
-        self.prior_conf = wp.full((capacity, C, self.h, self.w), 1.0, dtype=float, device=self.device)  # its weight in [0,1]
-        self.scales = wp.full((capacity, C) + tuple(scale_grid), 1.0, dtype=wp.float64, device=self.device)  # JDSA scale grids
-        self.exposure = wp.zeros((capacity, C, 2), dtype=float, device=self.device)  # per image (log a, b): colour a * C + b
+        self.scale_grid = tuple(scale_grid)
         #: keyframe -> full-resolution mapping depth targets per camera ([H,W] m, 0 = none;
         #: ``None`` for a camera without); a keyframe is mapped once it has an entry, and a
         #: new list (not an edited one) is what tells the mapping loss to re-upload it
@@ -76,6 +74,29 @@ class KeyframeBuffer:
         self.frame_index: list[int] = []
         self.images: list[list[np.ndarray]] = []
         self._full_rays = None
+        self.capacity = 0
+        self._grow(max(1, int(capacity)))
+
+    def _grow(self, capacity: int) -> None:
+        """Reallocate the per-keyframe device arrays with ``capacity`` slots, keeping the
+        keyframes held so far; new slots take the defaults (zeros; prior confidence and JDSA
+        scales 1). Everything reads these arrays through the buffer's attributes, so nothing
+        keeps the old ones."""
+        C, dev, K = len(self.rig), self.device, len(self)
+        grid = (capacity, C, self.h, self.w)
+        new = {
+            "poses": wp.zeros(capacity, dtype=wp.transform, device=dev),  # T_w_b
+            "disp": wp.zeros(grid, dtype=float, device=dev),
+            "depth_prior": wp.zeros(grid, dtype=float, device=dev),  # m, 0 = none
+            "prior_conf": wp.full(grid, 1.0, dtype=float, device=dev),  # its weight in [0,1]
+            "scales": wp.full((capacity, C) + self.scale_grid, 1.0, dtype=wp.float64, device=dev),  # JDSA scale grids
+            "exposure": wp.zeros((capacity, C, 2), dtype=float, device=dev),  # per image (log a, b): colour a * C + b
+        }
+        for name, arr in new.items():
+            if K:
+                wp.copy(arr[:K], getattr(self, name)[:K])
+            setattr(self, name, arr)
+        self.capacity = capacity
 
     @property
     def full_rays(self) -> wp.array:
@@ -101,7 +122,7 @@ class KeyframeBuffer:
         and its confidence ``prior_conf`` [C,h,w] in [0,1] (default: 1 where there is a prior)."""
         k = len(self)
         if k >= self.capacity:
-            raise RuntimeError(f"keyframe buffer full ({self.capacity} keyframes)")
+            self._grow(2 * self.capacity)
         self.timestamps.append(float(timestamp))
         self.frame_index.append(int(frame_index))
         self.images.append(list(images))

@@ -75,7 +75,7 @@ class SLAM:
         self.seq = sequence
         self.cfg = config
         self.progress = progress or Progress(False)
-        self.buf = KeyframeBuffer(sequence.rig, stride=config.tracking.stride, capacity=len(sequence) + 1, device=device)
+        self.buf = KeyframeBuffer(sequence.rig, stride=config.tracking.stride, device=device)  # grows with the keyframes
         self.tracker = self.make_tracker()
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
         self.mapper.sky_depth_veto = self.tracker.exact_depth  # a region exact sensor depth measures is not sky

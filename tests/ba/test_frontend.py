@@ -519,3 +519,35 @@ def test_image_motion_finds_a_pause_and_only_the_pause(tmp_path):
     pause = {k for k in motions if true_steps[k - 1] < 1e-9}  # the same pose as the frame before
     assert len(pause) == lay.pause_frames
     assert still == pause, (sorted(still), sorted(pause), {k: round(v, 4) for k, v in motions.items()})
+
+
+def test_keyframe_buffer_grows_with_its_keyframes(synthetic_seq):
+    """The buffer starts with a few slots and doubles when a keyframe needs more: every
+    keyframe's pose, depth, prior, confidence, JDSA grid and exposure survive the growth, and
+    new slots take the defaults (no prior confidence 1, scales 1)."""
+    from mcgs_warp.buffer import KeyframeBuffer
+    from mcgs_warp.geometry import se3_exp
+
+    rng = np.random.default_rng(0)
+    buf = KeyframeBuffer(synthetic_seq.rig, stride=8, capacity=2)
+    C, h, w = len(synthetic_seq.rig), buf.h, buf.w
+    kept = []
+    for k in range(5):
+        T = se3_exp(rng.normal(size=6) * 0.1)
+        disp, prior, conf = rng.uniform(0.1, 1, (C, h, w)), rng.uniform(1, 9, (C, h, w)), rng.uniform(0, 1, (C, h, w))
+        assert buf.add(k, 0.1 * k, [None] * C, T, disp, depth_prior=prior, prior_conf=conf) == k
+        grids = buf.scales.numpy()
+        grids[k] = 1.0 + k
+        buf.scales.assign(grids)
+        e = buf.exposure.numpy()
+        e[k] = k
+        buf.exposure.assign(e)
+        kept.append((T, disp, prior, conf))
+    assert len(buf) == 5 and buf.capacity == 8
+    np.testing.assert_allclose(buf.get_poses(), np.stack([t[0] for t in kept]), atol=1e-6)
+    for k, (_, disp, prior, conf) in enumerate(kept):
+        np.testing.assert_allclose(buf.disp.numpy()[k], disp, rtol=1e-6)
+        np.testing.assert_allclose(buf.depth_prior.numpy()[k], prior, rtol=1e-6)
+        np.testing.assert_allclose(buf.prior_conf.numpy()[k], conf, rtol=1e-6)
+        assert (buf.scales.numpy()[k] == 1.0 + k).all() and (buf.exposure.numpy()[k] == k).all()
+    assert (buf.prior_conf.numpy()[5:] == 1).all() and (buf.scales.numpy()[5:] == 1).all() and (buf.disp.numpy()[5:] == 0).all()
