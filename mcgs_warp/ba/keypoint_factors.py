@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..kernels import reference
+from . import camera64
 
 DEPTH_DAMPING = 1.0e4  # as kernels/ba.py: Q = 1 / (C (1 + lambda) + lambda DEPTH_DAMPING)
 
@@ -39,7 +39,8 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 def project_by_camera(cams, cam_of: np.ndarray, X: np.ndarray, jac: bool = False):
     """Pixels [n,2] of camera-frame points ``X`` [n,3], each in its camera ``cams[cam_of[i]]``
-    (Warp camera structs, NumPy reference model), their Jacobians [n,2,3] (with ``jac``),
+    (Warp camera structs; the float64 host model, :mod:`.camera64`), their analytic Jacobians
+    [n,2,3] (with ``jac``),
     validity [n] (in the model's domain, finite) and the points used ([n,3]; invalid ones
     replaced by +z so that nothing downstream divides by zero)."""
     n = len(X)
@@ -49,13 +50,10 @@ def project_by_camera(cams, cam_of: np.ndarray, X: np.ndarray, jac: bool = False
         m = cam_of == c
         if not m.any():
             continue
-        with np.errstate(all="ignore"):
-            ok = reference.in_domain(cam, X[m])
-            used[m] = np.where(ok[:, None], X[m], [0.0, 0.0, 1.0])
-            uv[m] = reference.project(cam, used[m])
-            if jac:
-                J[m] = reference.jacobian(cam, used[m])
-        valid[m] = ok & np.all(np.isfinite(uv[m]), axis=1)
+        uv[m], valid[m], Jm = camera64.project(cam, X[m], jacobian=jac)
+        used[m] = np.where(valid[m][:, None], X[m], [0.0, 0.0, 1.0])
+        if jac:
+            J[m] = Jm
     return uv, J, valid, used
 
 

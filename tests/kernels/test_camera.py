@@ -182,3 +182,26 @@ def test_host_point_projection_matches_reference(model):
     np.testing.assert_allclose(J[: len(p)], reference.jacobian(cam, p), rtol=2e-3, atol=2e-3)
     _, ok_near, _ = project_points(cam, p, near=float(np.linalg.norm(p, axis=1).max()) + 1.0)
     assert not ok_near.any()
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_float64_host_model_matches_reference_and_kernels(model):
+    """ba.camera64 (the solvers' float64 camera with analytic Jacobians) gives the float64
+    reference's pixels to 1e-9 px, its central-difference Jacobians, the kernels' pixels, and
+    the same domain: behind the camera, beyond the far plane, past a pinhole's monotonic
+    distortion radius and non-finite points do not project."""
+    from mcgs_warp.ba.camera64 import project
+    from mcgs_warp.ba.edges import project_points
+
+    rng = np.random.default_rng(7)
+    cam = cameras()[model]
+    p = points_in_view(model, 300, rng)
+    uv, ok, J = project(cam, p, jacobian=True)
+    assert ok.all()
+    np.testing.assert_allclose(uv, reference.project(cam, p), atol=1e-9)
+    np.testing.assert_allclose(J, reference.jacobian(cam, p), rtol=1e-5, atol=1e-5 * np.abs(J).max())
+    np.testing.assert_allclose(uv, project_points(cam, p)[0], atol=2e-4)
+    bad = np.array([[0.1, 0.2, 1e6], [np.nan, 0.0, 3.0], [0.0, np.inf, 1.0]] + ([] if model == "equirectangular" else [[0.0, 0.0, -2.0]]) + ([[50.0, 0.0, 1.0]] if model == "pinhole" else []))  # the last: past the distortion's monotonic radius
+    uv_b, ok_b, J_b = project(cam, bad, jacobian=True)
+    assert not ok_b.any() and (uv_b == 0).all() and (J_b == 0).all()
+    assert (ok_b == project_points(cam, bad)[1]).all()
