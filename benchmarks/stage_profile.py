@@ -1,6 +1,6 @@
 """Where a run's time goes: seconds per stage and the share of them inside Warp kernels.
 
-    python benchmarks/profile.py [--data ../shared/data/kitti_stereo_excerpt] [--out out/profile]
+    python benchmarks/stage_profile.py [--data ../shared/data/kitti_stereo_excerpt] [--out out/profile]
         [--every 1] [--config C.yaml] [--cprofile out/profile/run.prof]
 
 Runs ``mcgs-slam run`` in this process (default configuration unless ``--config``) with each
@@ -18,16 +18,12 @@ writes a cProfile dump (``python -m pstats``) of the whole run.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
-    del sys.path[0]  # this file's name would shadow the standard library's profile (cProfile imports it)
-
 import argparse
 import functools
+import sys
 import threading
 import time
+from pathlib import Path
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_stereo_excerpt"
 
