@@ -21,7 +21,8 @@ figures before this benchmark generalized, for continuity); ``--oracle`` adds gr
 correspondence runs (the back end's ceiling). Prints one table row per (scene, rig, mode):
 the mean and worst over the seeds of the SE(3)-aligned ATE (% of the path) beside the keypoint
 odometry's alone on the same frames (the sparse core), the Sim(3)
-scale error, PSNR on keyframes and on non-keyframes, depth L1 and seconds; then, per scene
+scale error, PSNR on keyframes and on non-keyframes, depth L1 (over every pixel the map renders, then on
+those its confidence marks measured, and their share) and seconds; then, per scene
 and rig, JDSA on vs off. Everything lands in ``OUT/ablation.json``.
 """
 
@@ -89,8 +90,10 @@ def summary(rows, scene, rig, mode):
     psnr = np.array([r["psnr_db"] for r in sel])
     held = np.array([r["psnr_nonkeyframe_db"] if r["psnr_nonkeyframe_db"] is not None else np.nan for r in sel])
     l1 = np.array([r["depth_l1_m"] if r["depth_l1_m"] is not None else np.nan for r in sel])
+    l1m = np.array([r.get("depth_l1_measured_m") if r.get("depth_l1_measured_m") is not None else np.nan for r in sel])
+    frac = np.array([r.get("depth_measured_fraction") if r.get("depth_measured_fraction") is not None else np.nan for r in sel])
     secs = np.array([r["seconds_total"] for r in sel])
-    return {"n": len(sel), "ate": (ate.mean(), ate.max()), "odo": (np.nanmean(odo) if np.isfinite(odo).any() else np.nan, np.nanmax(odo) if np.isfinite(odo).any() else np.nan), "scale": (scale.mean(), scale.max()), "psnr": (psnr.mean(), psnr.min()), "held": (np.nanmean(held), np.nanmin(held)), "l1": (np.nanmean(l1), np.nanmax(l1)), "s": (secs.mean(), secs.max())}
+    return {"n": len(sel), "ate": (ate.mean(), ate.max()), "odo": (np.nanmean(odo) if np.isfinite(odo).any() else np.nan, np.nanmax(odo) if np.isfinite(odo).any() else np.nan), "scale": (scale.mean(), scale.max()), "psnr": (psnr.mean(), psnr.min()), "held": (np.nanmean(held), np.nanmin(held)), "l1": (np.nanmean(l1), np.nanmax(l1)), "l1m": (np.nanmean(l1m), np.nanmax(l1m)), "frac": (np.nanmean(frac), np.nanmin(frac)), "s": (secs.mean(), secs.max())}
 
 
 if __name__ == "__main__":
@@ -126,13 +129,13 @@ if __name__ == "__main__":
     print()
     print(f"{args.frames} frames, seeds {args.seeds}, --realism {args.realism}, realistic mono prior; mean / worst over the seeds")
     print()
-    print("| scene | rig | mode | SE(3) ATE % of path | odometry alone % of path | Sim(3) scale error % | PSNR dB | PSNR non-keyframes dB | depth L1 m | s |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| scene | rig | mode | SE(3) ATE % of path | odometry alone % of path | Sim(3) scale error % | PSNR dB | PSNR non-keyframes dB | depth L1 m | depth L1 measured m | measured share % | s |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     keys = sorted({(r["scene"], r["rig"], r["mode"]) for r in rows}, key=lambda k: (k[0], k[1], modes.index(k[2])))
     for scene, rig, mode in keys:
         s = summary(rows, scene, rig, mode)
         print(f"| {scene} | {rig} | {mode} | {s['ate'][0]:.3f} / {s['ate'][1]:.3f} | {s['odo'][0]:.3f} / {s['odo'][1]:.3f} | {100 * s['scale'][0]:.2f} / {100 * s['scale'][1]:.2f} | {s['psnr'][0]:.1f} / {s['psnr'][1]:.1f} | "
-              f"{s['held'][0]:.1f} / {s['held'][1]:.1f} | {s['l1'][0]:.3f} / {s['l1'][1]:.3f} | {s['s'][0]:.0f} / {s['s'][1]:.0f} |")
+              f"{s['held'][0]:.1f} / {s['held'][1]:.1f} | {s['l1'][0]:.3f} / {s['l1'][1]:.3f} | {s['l1m'][0]:.3f} / {s['l1m'][1]:.3f} | {100 * s['frac'][0]:.0f} / {100 * s['frac'][1]:.0f} | {s['s'][0]:.0f} / {s['s'][1]:.0f} |")
     print()
     for scene, rig in sorted({(k[0], k[1]) for k in keys}):
         on, off = summary(rows, scene, rig, "mono"), summary(rows, scene, rig, "mono-nojdsa")

@@ -4,6 +4,8 @@ and the keyframe cameras as ``UsdGeom.Camera``.
 The prim takes activated values (DESIGN.md): ``positions`` (world, m),
 ``orientations`` (quatf, real part first), ``scales`` (linear), ``opacities`` in
 [0, 1], and colour as degree-0 spherical harmonics with DC = (rgb - 0.5) / 0.28209479.
+``primvars:measured`` (bool per splat, vertex interpolation) says which splats were placed at
+a measured depth, the others at a guessed one (mapping/gaussian_map.py).
 The stage is written to a temporary file and renamed (atomic).
 """
 
@@ -31,8 +33,8 @@ def valid_identifier(name: str) -> str:
 
 def write_usd(path, params: dict, cameras=None) -> None:
     """``params``: map arrays (``means``, ``quats`` xyzw, ``log_scales``, ``opacity_logits``,
-    ``colors``); ``cameras``: optional list of ``(name, T_w_c [4,4], CameraSpec)``."""
-    from pxr import Gf, Usd, UsdGeom, UsdVol, Vt
+    ``colors``; optional ``measured`` [N] bool); ``cameras``: optional list of ``(name, T_w_c [4,4], CameraSpec)``."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdVol, Vt
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -58,6 +60,9 @@ def write_usd(path, params: dict, cameras=None) -> None:
         splat.CreateOpacitiesAttr(Vt.FloatArray.FromNumpy(opac))
         splat.CreateRadianceSphericalHarmonicsDegreeAttr(0)
         splat.CreateRadianceSphericalHarmonicsCoefficientsAttr(Vt.Vec3fArray.FromNumpy(dc))
+        if params.get("measured") is not None:
+            pv = UsdGeom.PrimvarsAPI(splat.GetPrim()).CreatePrimvar("measured", Sdf.ValueTypeNames.BoolArray, UsdGeom.Tokens.vertex)
+            pv.Set(Vt.BoolArray([bool(m) for m in np.asarray(params["measured"], bool)]))
         if len(means):
             lo = (means - 3 * scales.max(1, keepdims=True)).min(0)
             hi = (means + 3 * scales.max(1, keepdims=True)).max(0)
@@ -86,7 +91,7 @@ def write_usd(path, params: dict, cameras=None) -> None:
 
 def read_usd_map(path) -> dict:
     """Activated splat attributes of the map prim (for checks and viewers)."""
-    from pxr import Usd, UsdVol
+    from pxr import Usd, UsdGeom, UsdVol
 
     stage = Usd.Stage.Open(str(path))
     splat = UsdVol.ParticleField3DGaussianSplat(stage.GetPrimAtPath(MAP_PATH))
@@ -100,4 +105,5 @@ def read_usd_map(path) -> dict:
         "sh_coefficients": np.array(splat.GetRadianceSphericalHarmonicsCoefficientsAttr().Get(), np.float32).reshape(-1, 3),
         "extent": np.array(splat.GetExtentAttr().Get(), np.float32),
         "cameras": [p.GetName() for p in stage.Traverse() if p.GetTypeName() == "Camera"],
+        "measured": np.array(pv.Get(), bool) if (pv := UsdGeom.PrimvarsAPI(splat.GetPrim()).GetPrimvar("measured")) and pv.HasValue() else None,
     }

@@ -1,4 +1,5 @@
-"""The 3D Gaussian map: parameters on a Warp device plus an anchor keyframe per Gaussian.
+"""The 3D Gaussian map: parameters on a Warp device plus, per Gaussian, its anchor keyframe and
+whether a measurement put it where it is.
 
 New Gaussians come from back-projected keyframe depth (every ``stride``-th pixel),
 coloured from the image, isotropic with a scale of half their footprint: the ``stride``
@@ -7,7 +8,11 @@ radian), so neighbouring splats meet at about one sigma at any depth, resolution
 of view, whatever else the map holds there; unit rotation and opacity 0.9 (a Gaussian
 seeded where no depth was measured, at its neighbourhood's depth, starts fainter). Each
 Gaussian remembers the keyframe it was created from, so when tracking moves that
-keyframe its Gaussians move with it (paper eq. 12-13).
+keyframe its Gaussians move with it (paper eq. 12-13), and whether it was seeded at a
+measured depth (a depth target: sensor, rig stereo, the MCBA depth, multi-view consistent)
+or at a guessed one (the fill); a guessed Gaussian becomes measured once a view's depth target
+agrees with it (:meth:`Mapper.densify_and_prune`). Clones and split children inherit it; the
+renderer turns it into a per-pixel confidence (:meth:`Mapper.measured_share`).
 
 The map also owns its densification: per Gaussian, the sum over mapping steps and
 views of ``|dL/d mean2d|`` and the number of views that saw it (device float64 arrays);
@@ -48,6 +53,7 @@ class GaussianMap:
         self.device = wp.get_device(device)
         self.gaussians = Gaussians.from_numpy(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), self.device)
         self.anchors = np.zeros(0, np.int32)  # keyframe id per Gaussian
+        self.measured = np.zeros(0, bool)  # per Gaussian: seeded at (or since confirmed by) a measured depth; False: its depth was guessed
         self._anchors_dev = None
         self.grad_accum = wp.zeros(0, dtype=wp.float64, device=self.device)  # [N] sum of |dL/d mean2d| over steps and views
         self.grad_count = wp.zeros(0, dtype=wp.float64, device=self.device)  # [N] views that saw it
@@ -65,17 +71,19 @@ class GaussianMap:
             "opacity_logits": g.opacity_logits.numpy().copy(),
             "colors": g.colors.numpy().copy(),
             "anchors": self.anchors.copy(),
+            "measured": self.measured.copy(),
         }
 
     def set_numpy(self, d: dict, index: np.ndarray | None = None) -> None:
         """Replace the Gaussians by ``d`` (as :meth:`to_numpy` gives). With ``index``
         ([N_new], source Gaussian or -1) the densification statistics follow; without,
-        they restart at zero."""
+        they restart at zero. Without ``measured`` (a map from an older file) no Gaussian counts as measured."""
         stats = self.statistics() if index is not None and self.grad_accum.shape[0] == len(self) else None
         self.gaussians = Gaussians.from_numpy(d["means"], d["quats"], d["log_scales"], d["opacity_logits"], d["colors"], self.device)
         self.anchors = np.asarray(d["anchors"], np.int32)
         self._anchors_dev = None
         n = len(self)
+        self.measured = np.asarray(d["measured"], bool).reshape(n) if d.get("measured") is not None else np.zeros(n, bool)
         acc, cnt = np.zeros(n), np.zeros(n)
         if stats is not None:
             ok = index >= 0
@@ -102,14 +110,15 @@ class GaussianMap:
             self.set_statistics(np.zeros(len(self)), np.zeros(len(self)))
         wp.launch(view_gradient_stats_kernel, dim=len(self), inputs=[mean2d_grads, visible, len(self), int(n_views)], outputs=[self.grad_accum, self.grad_count], device=self.device)
 
-    def append(self, means, colors, log_scales, anchor: int, quats=None, opacity_logits=None) -> int:
+    def append(self, means, colors, log_scales, anchor: int, quats=None, opacity_logits=None, measured=True) -> int:
         """Add ``n`` Gaussians (means [n,3] world m, colours [n,3], log-scales [n,3]; unit
-        rotation and the initial opacity unless given) anchored to keyframe ``anchor``."""
+        rotation and the initial opacity unless given) anchored to keyframe ``anchor``;
+        ``measured`` (bool or [n]): placed at a measured depth."""
         n = len(means)
         quats = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)) if quats is None else quats
         opacity_logits = np.full(n, logit(INITIAL_OPACITY)) if opacity_logits is None else opacity_logits
         d = self.to_numpy()
-        new = {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity_logits, "colors": colors, "anchors": np.full(n, anchor, np.int32)}
+        new = {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity_logits, "colors": colors, "anchors": np.full(n, anchor, np.int32), "measured": np.broadcast_to(np.asarray(measured, bool), (n,))}
         before = len(self)
         self.set_numpy({k: np.concatenate([d[k], np.asarray(new[k], dtype=d[k].dtype)]) for k in d}, np.concatenate([np.arange(before), -np.ones(n, int)]))
         return n
@@ -211,8 +220,15 @@ class GaussianMap:
         pts = np.concatenate(pts)
         cols = np.concatenate(cols)
         scale = np.clip(0.5 * np.concatenate(sizes), 1e-4, MAX_INITIAL_SCALE)
-        opacity = np.where(np.concatenate(guessed), fill_opacity, INITIAL_OPACITY)
-        return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor, opacity_logits=logit(opacity))
+        guessed = np.concatenate(guessed)
+        opacity = np.where(guessed, fill_opacity, INITIAL_OPACITY)
+        return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor, opacity_logits=logit(opacity), measured=~guessed)
+
+    def measured_colors(self) -> wp.array:
+        """[N] vec3 on the device: (1, 1, 1) for a measured Gaussian, 0 for a guessed one, the
+        colours that :meth:`Mapper.measured_share` blends."""
+        m = self.measured.astype(np.float32)
+        return wp.array(np.repeat(m[:, None], 3, 1), dtype=wp.vec3, device=self.device)
 
     def anchors_device(self) -> wp.array:
         """The anchors on the device (made on first use after the map changed)."""

@@ -19,7 +19,9 @@ Densify and prune every ``densify_every`` iterations: the map's gradient rules
 (floaters in front of the keyframes' depth, an on-screen size budget). New keyframes add
 Gaussians where the current map leaves the image uncovered (rendered alpha below
 ``new_alpha``) or renders behind the measured depth, also where no depth was measured
-(faint, at the depth the map renders there, else at their neighbourhood's: ``insert_fill``), and, with
+(faint, at the depth the map renders there, else at their neighbourhood's: ``insert_fill``; such a
+Gaussian is marked guessed until a view's depth target agrees with it, and :meth:`Mapper.measured_share`
+renders the measured share per pixel), and, with
 ``sky``, never on the view's sky (:mod:`.sky`), whose rendered
 alpha a cross-entropy term pushes to zero so the background shows there.
 """
@@ -36,7 +38,7 @@ import warp as wp
 from ..buffer import KeyframeBuffer
 from ..eval.metrics import psnr
 from ..geometry import adjoint
-from ..kernels import Views, render, render_backward
+from ..kernels import Views, blend, render, render_backward
 from ..kernels import background as bg
 from ..kernels.se3 import mat66
 from .gaussian_map import DensifyReport, GaussianMap, logit
@@ -156,6 +158,17 @@ class Mapper:
         """``(colour, render)``: :func:`render` of ``views`` and its colour with the background."""
         out = render(self.map.gaussians, views)
         return self.colour(out, views), out
+
+    def measured_share(self, out, views: Views) -> np.ndarray:
+        """[C,H,W] per pixel of ``out`` (a :meth:`render` of ``views`` by this map): the share of
+        its blended weight that comes from measured Gaussians (:attr:`GaussianMap.measured`), 0
+        where nothing renders. The rendered depth there was measured where it is at least 0.5,
+        else guessed (filled): the confidence beside every depth output."""
+        if len(self.map) == 0:
+            return np.zeros(out.alpha.shape, np.float32)
+        share = blend(out.projection, out.bins, self.map.measured_colors(), views).color.numpy()[..., 0]
+        alpha = out.alpha.numpy()
+        return np.where(alpha > 1e-4, np.clip(share / np.maximum(alpha, 1e-4), 0.0, 1.0), 0.0).astype(np.float32)
 
     def add_keyframe(self, k: int, depths, placed=None) -> int:
         """Register keyframe ``k`` of the buffer with full-resolution depth targets
@@ -360,6 +373,7 @@ class Mapper:
             oversized = radius > cfg.prune_screen * max(s.width for s in self.buf.rig.cameras) if cfg.prune_screen > 0 else np.zeros(len(self.map), bool)
             floaters = (front >= 2) & (front > agree) if cfg.prune_floaters else np.zeros(len(self.map), bool)
             drop = oversized | floaters
+            self.map.measured |= agree >= 1  # a guessed Gaussian that a view's depth target now puts where it is was measured
         report, index = self.map.densify_and_prune(cfg.densify_grad, cfg.split_scale, cfg.prune_opacity, cfg.prune_scale, cfg.max_gaussians, self.rng, drop=drop)
         if drop is not None:
             report.floaters, report.oversized_on_screen = int(floaters.sum()), int(oversized.sum())

@@ -219,3 +219,56 @@ def test_a_surface_measured_in_front_of_the_map_is_seeded(mapping_seq):
     added = m.add_keyframe(0, near)
     assert 0.3 * first < added < 0.7 * first, (added, first)  # the bottom half, in front
     assert m.add_keyframe(0, near) < 0.05 * first  # and only once
+
+
+def test_the_confidence_marks_guessed_depth_until_a_view_measures_it(mapping_seq):
+    """A keyframe that measured only the bottom half of its views: the fill's Gaussians in the
+    top half are marked guessed, the rendered measured share (the confidence PNGs) is low there
+    and high below. A depth target that later puts a guessed Gaussian where it is makes it
+    measured (at the next densify); one that disagrees (3x as far) does not."""
+    from problems import Problem
+
+    from mcgs_warp.kernels import render
+    from mcgs_warp.mapping.mapper import Mapper
+
+    def half_measured(m):
+        out = []
+        for c, spec in enumerate(m.buf.rig.cameras):
+            d = np.asarray(mapping_seq[KEYFRAMES[0]].depths[c], np.float32).copy()
+            d[: spec.height // 2] = 0.0
+            out.append(d)
+        return out
+
+    promoted = {}
+    for factor in (1.0, 3.0):
+        m = Mapper(Problem(mapping_seq, KEYFRAMES[:1], cross_view=False).buf, config=MappingConfig(densify_every=0, densify_grad=1e9))
+        m.add_keyframe(0, half_measured(m))
+        guessed = ~m.map.measured
+        assert 0.3 < guessed.mean() < 0.7, guessed.mean()
+        views = m.views(0)
+        out = render(m.map.gaussians, views)
+        share = m.measured_share(out, views)
+        for c, spec in enumerate(m.buf.rig.cameras):
+            top, bottom = share[c, 8 : spec.height // 2 - 8, 8:-8], share[c, spec.height // 2 + 8 : spec.height - 8, 8 : spec.width - 8]
+            assert (top < 0.5).mean() > 0.9 and (bottom >= 0.5).mean() > 0.9, (c, (top < 0.5).mean(), (bottom >= 0.5).mean())
+        # a later measurement of the whole view: the depth the map renders there, or 3x that
+        rendered = out.depth.numpy()  # (the faint top half has no median depth)
+        m.buf.targets[0] = [factor * rendered[c, : s.height, : s.width] for c, s in enumerate(m.buf.rig.cameras)]
+        before = {x.tobytes(): g for x, g in zip(m.map.gaussians.means.numpy(), guessed)}
+        m.densify_and_prune()  # nothing is cloned or split; what 3x as far leaves in front is pruned as floaters
+        was_guessed = np.array([before[x.tobytes()] for x in m.map.gaussians.means.numpy()])
+        assert factor != 1.0 or len(m.map) > 0.95 * len(before)
+        promoted[factor] = (m.map.measured & was_guessed).sum() / was_guessed.sum()
+    assert promoted[1.0] > 0.8 and promoted[3.0] < 0.02, promoted  # (of the guessed Gaussians that survive)
+
+
+def test_clones_and_split_children_inherit_whether_they_were_measured():
+    gmap = GaussianMap("cpu")
+    small, large = np.log(np.full((2, 3), 0.01)), np.log(np.full((2, 3), 0.2))
+    gmap.append(np.zeros((2, 3)), np.full((2, 3), 0.5), small, anchor=0, measured=True)
+    gmap.append(np.ones((2, 3)), np.full((2, 3), 0.5), large, anchor=0, measured=False)
+    gmap.set_statistics(np.ones(4), np.ones(4))  # every one hot
+    report, index = gmap.densify_and_prune(0.5, 0.05, 0.01, 2.0, 100, np.random.default_rng(0))
+    assert (report.cloned, report.split) == (2, 2) and len(gmap) == 8
+    scale = np.exp(gmap.to_numpy()["log_scales"]).max(1)
+    np.testing.assert_array_equal(gmap.measured, scale < 0.05)  # the small ones and their clones; the split children are not

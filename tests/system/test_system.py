@@ -53,6 +53,15 @@ def test_run_writes_every_output(run_dir):
     # the map covers every camera's view (a closed room: nothing is sky)
     cover = metrics["map_coverage_per_camera"]
     assert len(cover) == 3 and min(v["min"] for v in cover.values()) > 0.9, cover
+    # exact depth measured every pixel: what the map renders was measured (the confidence PNGs say so)
+    assert metrics["depth_measured_fraction"] > 0.95 and min(metrics["measured_fraction_per_camera"].values()) > 0.95, metrics
+    conf = sorted((run / "confidence").glob("keyframe_*.png"))
+    assert len(conf) == 3 * metrics["n_keyframes"]
+    import cv2
+
+    c0 = cv2.imread(str(conf[0]), cv2.IMREAD_UNCHANGED)
+    d0 = cv2.imread(str(run / "depth" / conf[0].name), cv2.IMREAD_UNCHANGED)
+    assert c0.dtype == np.uint8 and c0.shape == d0.shape and ((c0 >= 128) == (d0 > 0)).mean() > 0.95
     assert metrics["loop_edges"] == 0  # six frames driving forward revisit nothing: an edge would be false
     assert metrics["tracking_failures"] == 0 and metrics["metric_scale"] is True
     traj = read_tum(run / "trajectory.txt")
@@ -106,6 +115,8 @@ def test_usd_map_agrees_with_the_ply(run_dir):
     assert np.all(usd["extent"][0] <= ply["means"].min(0)) and np.all(usd["extent"][1] >= ply["means"].max(0))
     n_kf = json.loads((run / "metrics.json").read_text())["n_keyframes"]
     assert len(usd["cameras"]) == 3 * n_kf
+    assert ply["measured"] is not None and ply["measured"].any()
+    np.testing.assert_array_equal(usd["measured"], ply["measured"])
 
 
 def test_export_command_round_trips(run_dir, tmp_path):
