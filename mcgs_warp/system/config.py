@@ -2,7 +2,11 @@
 
 The defaults live here, one line each with its meaning and unit; the solver defaults come
 from the stages that use them (``MCBAConfig``, the keyframe selector, ``MappingConfig``),
-so the tuned values are written once. ``configs/*.yaml`` hold only what a run changes."""
+so the tuned values are written once. A stage's own settings are a nested section of its
+stage's: ``tracking.stereo`` (:class:`~mcgs_warp.frontend.stereo.StereoConfig`),
+``tracking.keypoint_matching`` (:class:`~mcgs_warp.frontend.keypoint_tracker.KeypointConfig`),
+``tracking.odometry`` (:class:`~mcgs_warp.frontend.keypoint_odometry.OdometryConfig`),
+``tracking.flow`` (:class:`~mcgs_warp.frontend.flow.FlowConfig`) and ``tracking.graph`` (:class:`~mcgs_warp.ba.edges.GraphConfig`), each key documented there. ``configs/*.yaml`` hold only what a run changes."""
 
 from __future__ import annotations
 
@@ -10,9 +14,14 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..ba.edges import GraphConfig
 from ..ba.mcba import MCBAConfig
 from ..errors import InputError
+from ..frontend.flow import FlowConfig
 from ..frontend.keyframes import THRESHOLD_RAD
+from ..frontend.keypoint_odometry import OdometryConfig
+from ..frontend.keypoint_tracker import KeypointConfig
+from ..frontend.stereo import StereoConfig
 from ..mapping.mapper import MappingConfig
 
 
@@ -35,12 +44,48 @@ MINIMUMS = {
     ("mapping", "insert_stride"): (1, False, "new Gaussians every insert_stride-th pixel"),
     ("mapping", "fill_opacity"): (0.0, True, "an opacity of 0 is a logit of minus infinity"),
     ("mapping", "background_cube"): (0, False, "texels per cube face"),
+    ("tracking.stereo", "scale"): (1, False, "the sweep runs at 1/scale resolution"),
+    ("tracking.stereo", "planes"): (2, False, "a sweep needs at least two depth hypotheses"),
+    ("tracking.stereo", "plane_px"): (0.0, True, "the epipolar step between hypotheses"),
+    ("tracking.stereo", "radius"): (1, False, "the ZNCC window is (2 radius + 1)^2 pixels"),
+    ("tracking.stereo", "near"): (0.0, True, "the nearest hypothesis' inverse depth"),
+    ("tracking.stereo", "temporal_near"): (0.0, True, "the nearest temporal hypothesis' inverse depth"),
+    ("tracking.stereo", "max_cost"): (0.0, True, "0 would reject every match"),
+    ("tracking.stereo", "max_ratio"): (0.0, True, "0 would reject every match"),
+    ("tracking.keypoint_matching", "features"): (1, False, "keypoints per view"),
+    ("tracking.keypoint_matching", "ratio"): (0.0, True, "0 would reject every match"),
+    ("tracking.keypoint_matching", "inlier_rad"): (0.0, True, "0 would leave no inlier"),
+    ("tracking.keypoint_matching", "min_inliers"): (4, False, "a PnP pose needs at least 4 points"),
+    ("tracking.keypoint_matching", "keyframes"): (1, False, "a keyframe is matched against at least one other"),
+    ("tracking.odometry", "frames"): (1, False, "a frame is matched against at least the one before"),
+    ("tracking.odometry", "window"): (2, False, "the bundle adjustment needs the new frame and one other"),
+    ("tracking.odometry", "iterations"): (1, False, "0 would never move a pose"),
+    ("tracking.odometry", "stride"): (1, False, "the residuals' pixel unit"),
+    ("tracking.odometry", "huber_px"): (0.0, True, "0 would give every residual zero weight"),
+    ("tracking.flow", "patch_size"): (1, False, "DIS patches are at least 1 px"),
+    ("tracking.flow", "sigma"): (0.0, True, "the confidence divides by it"),
+    ("tracking.graph", "sample"): (1, False, "overlap is measured on every sample-th grid pixel"),
+    ("tracking.graph", "max_angle"): (0.0, True, "0 would link no pair"),
+    ("tracking.graph", "loop_max_per_view"): (1, False, "a loop candidate needs a partner (refinement.global_ba_iterations: 0 skips loops)"),
 }
 
 #: largest allowed values: (section, key) -> (maximum, strict, what the key needs)
 MAXIMUMS = {
     ("mapping", "fill_opacity"): (1.0, True, "an opacity of 1 is a logit of infinity"),
     ("mapping", "prune_screen"): (1.0, False, "a share of the image width"),
+    ("tracking.stereo", "max_ratio"): (1.0, False, "best / second-best cost"),
+    ("tracking.stereo", "max_disparity"): (1.0, False, "a share of the image width"),
+    ("tracking.keypoint_matching", "ratio"): (1.0, False, "nearest / second nearest descriptor distance"),
+    ("tracking.keypoint_matching", "min_inlier_ratio"): (1.0, False, "a share of the matches"),
+    ("tracking.graph", "max_angle"): (180.0, False, "degrees between optical axes"),
+    ("tracking.graph", "loop_max_angle"): (180.0, False, "degrees between optical axes"),
+    ("tracking.graph", "min_overlap"): (1.0, False, "a share of the view"),
+    ("tracking.graph", "loop_min_overlap"): (1.0, False, "a share of the view"),
+}
+
+#: keys of a nested stage section that the run sets from another key: (section, key) -> which
+DERIVED = {
+    ("tracking.graph", "max_per_view"): "tracking.temporal_radius sets it (2 x temporal_radius)",
 }
 
 
@@ -66,6 +111,11 @@ class TrackingConfig:
     depth_weight: float = 30.0  # px^2 m^2: weight of the sensor-depth alignment residual (exact sensor depth only: a view's depth moved into another against that view's depth, so textureless surfaces with good depth still track; 0: off)
     flow_rounds: int = 2  # MCBA (+ JDSA) rounds per keyframe; between them correspondences follow the new geometry
     variance_components: bool = MCBAConfig.variance_components  # weight keypoint tracks and odometry against the dense residuals by the noise each measurably carries (robust scale, redundancy, the dense field's correlation; mcgs_warp/ba/variance.py); false: nominal weights
+    stereo: StereoConfig = field(default_factory=StereoConfig)  # the rig's sweep stereo (depth prior without a depth sensor, cross-view matches): mcgs_warp/frontend/stereo.py
+    keypoint_matching: KeypointConfig = field(default_factory=KeypointConfig)  # SIFT matching and multi-camera PnP of the keyframe anchor and the keypoint odometry: mcgs_warp/frontend/keypoint_tracker.py
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)  # the keypoint odometry's sliding window: mcgs_warp/frontend/keypoint_odometry.py
+    flow: FlowConfig = field(default_factory=FlowConfig)  # the DIS correspondences of MCBA's edges: mcgs_warp/frontend/flow.py
+    graph: GraphConfig = field(default_factory=GraphConfig)  # which views MCBA links (overlap, angles) and loop closure in global BA: mcgs_warp/ba/edges.py
 
 
 @dataclass
@@ -100,7 +150,14 @@ class RunConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Every settable key (what a run writes as its resolved config.yaml, which loads back)."""
+        d = dataclasses.asdict(self)
+        for section, key in DERIVED:
+            node = d
+            for part in section.split("."):
+                node = node[part]
+            del node[key]
+        return d
 
 
 def _at_least(value, src, section, key, name):
@@ -125,6 +182,8 @@ def _fill(cls, data, src, prefix):
         name = f"{prefix}.{key}" if prefix else str(key)
         if key not in fields:
             raise InputError(src, name, f"unknown key (expected one of {', '.join(sorted(fields))})")
+        if (prefix, key) in DERIVED:
+            raise InputError(src, name, f"not settable: {DERIVED[(prefix, key)]}")
         f = fields[key]
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         if dataclasses.is_dataclass(default):

@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..ba.edges import TEMPORAL, GraphConfig, camera_overlap, camera_pairs, sliding_window
+from ..ba.edges import TEMPORAL, camera_overlap, camera_pairs, sliding_window
 from ..ba.graph import FactorGraph
 from ..ba.jdsa import mcba_with_jdsa, scale_field
 from ..ba.keypoint_tracks import KeypointTracks
@@ -50,13 +50,12 @@ class Tracker:
         tc = config.tracking
         self.buf = buffer
         rig_overlap = camera_overlap(sequence.rig, stride=tc.stride)
-        self.stereo = RigStereo(sequence.rig, rig_overlap, device=self.buf.device)
+        self.stereo = RigStereo(sequence.rig, rig_overlap, tc.stereo, device=self.buf.device)
         self.prior = choose_prior(sequence, tc.depth, lambda: self.stereo if self.stereo.pairs else None)
-        # Correspondences: where they measure depth, full-resolution DIS with small patches (RGB
-        # only, seed 1: depth L1 0.206 -> 0.137 m); with exact sensor depth they only constrain
-        # the poses, and the preset (half resolution) is 3.7x cheaper per call (the demo: SE(3)
-        # ATE 2.54 vs 2.31 mm, 60 vs 74-78 s of SLAM time).
-        self.flow = DISFlow() if self.exact_depth else DISFlow(finest_scale=0, patch_size=4, smoothness=5.0)
+        # Correspondences: where they measure depth, full-resolution DIS with small patches; with
+        # exact sensor depth they only constrain the poses, and the preset is cheaper (FlowConfig)
+        fc = tc.flow
+        self.flow = DISFlow(sigma=fc.sigma) if self.exact_depth and fc.exact_depth_preset else DISFlow(sigma=fc.sigma, finest_scale=fc.finest_scale, patch_size=fc.patch_size, smoothness=fc.smoothness)
         self.guided = GuidedDIS(self.flow)
         self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
         self.selector = KeyframeSelector(DISFlow(), sequence.rig.cameras, threshold=tc.keyframe_flow)  # a mean flow: half resolution is enough
@@ -69,11 +68,11 @@ class Tracker:
 
             raise InputError(None, "tracking.correspondences", "none leaves only the keypoint tracks: it needs tracking.keypoints true and tracking.keypoint_weight above 0")
         self.stereo_matches = StereoMatches(self.stereo)
-        self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None
-        self.odometry = KeypointOdometry(sequence.rig, rig_overlap, self.stereo.pairs, seed=config.seed) if tc.keypoints else None  # every frame's motion
+        self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, tc.keypoint_matching, seed=config.seed) if tc.keypoints else None
+        self.odometry = KeypointOdometry(sequence.rig, rig_overlap, self.stereo.pairs, tc.odometry, tc.keypoint_matching, seed=config.seed) if tc.keypoints else None  # every frame's motion
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0, variance_components=tc.variance_components))
-        self.graph = FactorGraph(self.buf, self.overlap, GraphConfig(max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
+        self.graph = FactorGraph(self.buf, self.overlap, replace(tc.graph, max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
         self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._events: list = []  # what the map must follow since the last update (:meth:`take_update`)
         self.frame_motion: dict = {}  # frame index -> image motion (rad) since the frame before it (the keyframe test's flows, :func:`motion`)

@@ -118,6 +118,11 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
     ("tracking:\n  mcba_iterations: 0\n", "tracking.mcba_iterations: expected at least 1"),
     ("tracking:\n  temporal_radius: 0\n", "tracking.temporal_radius: expected at least 1"),
     ("mapping:\n  insert_stride: 0\n", "mapping.insert_stride: expected at least 1"),
+    ("tracking:\n  stereo:\n    planes: 1\n", "tracking.stereo.planes: expected at least 2"),
+    ("tracking:\n  stereo:\n    radius: 0\n", "tracking.stereo.radius: expected at least 1"),
+    ("tracking:\n  odometry:\n    window: 1\n", "tracking.odometry.window: expected at least 2"),
+    ("tracking:\n  keypoint_matching:\n    keyframes: 0\n", "tracking.keypoint_matching.keyframes: expected at least 1"),
+    ("tracking:\n  graph:\n    sample: 0\n", "tracking.graph.sample: expected at least 1"),
 ])
 def test_run_config_rejects_values_that_switch_a_stage_off(tmp_path, text, message):
     from mcgs_warp.errors import InputError
@@ -158,3 +163,49 @@ def test_a_cpu_run_names_its_device_once_without_warps_driver_warning(tmp_path):
         assert "Warp kernels ran on cpu (no CUDA driver" in res.stderr
         bad = cli("--device", "cuda:0", "synth", "--out", tmp_path / "t", "--frames", 2, "--cameras", 1)
         assert bad.returncode == 2 and "--device: expected a Warp device of this machine (cpu), got 'cuda:0'" in bad.stderr, bad.stderr
+
+
+@pytest.mark.parametrize("text, message", [
+    ("tracking:\n  stereo:\n    planes_: 64\n", "tracking.stereo.planes_: unknown key (expected one of far, lr_px, max_cost"),
+    ("tracking:\n  stereo: 64\n", "tracking.stereo: expected a mapping, got int"),
+    ("tracking:\n  stereo:\n    max_ratio: 1.5\n", "tracking.stereo.max_ratio: expected at most 1.0"),
+    ("tracking:\n  keypoint_matching:\n    min_inliers: 3\n", "tracking.keypoint_matching.min_inliers: expected at least 4"),
+    ("tracking:\n  graph:\n    max_per_view: 6\n", "tracking.graph.max_per_view: not settable: tracking.temporal_radius sets it"),
+])
+def test_nested_stage_sections_are_validated_like_the_others(tmp_path, text, message):
+    from mcgs_warp.errors import InputError
+    from mcgs_warp.system.config import load_run_config
+
+    path = tmp_path / "run.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message.replace(".", r"\.").replace("(", r"\(")):
+        load_run_config(path)
+
+
+def test_every_stage_section_reaches_its_stage(tmp_path):
+    """tracking.stereo / keypoint_matching / odometry / flow / graph set from YAML are what the
+    tracker's parts run with (the keypoint matching for both keypoint trackers), and the
+    resolved config.yaml a run writes loads back to the same configuration."""
+    import dataclasses
+
+    import yaml
+
+    from mcgs_warp.buffer import KeyframeBuffer
+    from mcgs_warp.data import open_sequence
+    from mcgs_warp.system.config import load_run_config
+    from mcgs_warp.system.tracker import Tracker
+
+    path = tmp_path / "run.yaml"
+    path.write_text("tracking:\n  temporal_radius: 3\n  stereo:\n    planes: 64\n    radius: 2\n  keypoint_matching:\n    features: 500\n"
+                    "  odometry:\n    window: 7\n  graph:\n    min_overlap: 0.2\n  flow:\n    patch_size: 6\n    sigma: 2.0\n")
+    cfg = load_run_config(path)
+    seq = open_sequence(small_sequence(tmp_path / "seq"))
+    tracker = Tracker(seq, cfg, KeyframeBuffer(seq.rig, stride=cfg.tracking.stride))
+    assert tracker.stereo.cfg.planes == 64 and tracker.stereo.cfg.radius == 2
+    assert tracker.keypoints.cfg.features == 500 and tracker.odometry.tracker.cfg.features == 500
+    assert tracker.odometry.cfg.window == 7
+    assert tracker.flow.settings == ("medium", 0, 6, 5.0) and tracker.flow.sigma == 2.0  # no exact depth here: the flow settings, not the preset
+    assert tracker.graph.cfg.min_overlap == 0.2 and tracker.graph.cfg.max_per_view == 6
+    (tmp_path / "resolved.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    again = load_run_config(tmp_path / "resolved.yaml")
+    assert dataclasses.asdict(again) == dataclasses.asdict(cfg)

@@ -46,7 +46,7 @@ def test_yaml_files_with_random_text(tmp_path_factory, text):
 
 
 @SETTINGS
-@given(st.dictionaries(st.sampled_from(["seed", "tracking", "mapping", "refinement", "output", "bogus"]), st.one_of(values, st.dictionaries(st.sampled_from(["window", "stride", "jdsa", "lr_means", "renders", "x"]), scalars, max_size=4)), max_size=5))
+@given(st.dictionaries(st.sampled_from(["seed", "tracking", "mapping", "refinement", "output", "bogus"]), st.one_of(values, st.dictionaries(st.sampled_from(["window", "stride", "jdsa", "lr_means", "renders", "stereo", "graph", "x"]), scalars, max_size=4)), max_size=5))
 def test_run_config_with_random_values(tmp_path_factory, data):
     path = tmp_path_factory.mktemp("fuzz") / "run.yaml"
     path.write_text(yaml.safe_dump(data))
