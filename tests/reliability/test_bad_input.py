@@ -111,6 +111,21 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
     assert path.read_text() == "new"
 
 
+def config_error(tmp_path, text: str, message: str):
+    """Write ``text`` as a run configuration and check that loading it fails with ``message``
+    (literal); returns the file."""
+    import re
+
+    from mcgs_warp.errors import InputError
+    from mcgs_warp.system.config import load_run_config
+
+    path = tmp_path / "run.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=re.escape(message)):
+        load_run_config(path)
+    return path
+
+
 @pytest.mark.parametrize("text, message", [
     ("tracking:\n  window: 0\n", "tracking.window: expected at least 2"),  # was an IndexError
     ("tracking:\n  window: 1\n", "tracking.window: expected at least 2"),  # silently no tracking
@@ -125,13 +140,9 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
     ("tracking:\n  graph:\n    sample: 0\n", "tracking.graph.sample: expected at least 1"),
 ])
 def test_run_config_rejects_values_that_switch_a_stage_off(tmp_path, text, message):
-    from mcgs_warp.errors import InputError
     from mcgs_warp.system.config import load_run_config
 
-    path = tmp_path / "run.yaml"
-    path.write_text(text)
-    with pytest.raises(InputError, match=message):
-        load_run_config(path)
+    path = config_error(tmp_path, text, message)
     path.write_text(text.replace(": 0\n", ": 2\n").replace(": 1\n", ": 2\n"))
     load_run_config(path)  # the smallest sensible value passes
 
@@ -173,13 +184,7 @@ def test_a_cpu_run_names_its_device_once_without_warps_driver_warning(tmp_path):
     ("tracking:\n  graph:\n    max_per_view: 6\n", "tracking.graph.max_per_view: not settable: tracking.temporal_radius sets it"),
 ])
 def test_nested_stage_sections_are_validated_like_the_others(tmp_path, text, message):
-    from mcgs_warp.errors import InputError
-    from mcgs_warp.system.config import load_run_config
-
-    path = tmp_path / "run.yaml"
-    path.write_text(text)
-    with pytest.raises(InputError, match=message.replace(".", r"\.").replace("(", r"\(")):
-        load_run_config(path)
+    config_error(tmp_path, text, message)
 
 
 def test_every_stage_section_reaches_its_stage(tmp_path):
