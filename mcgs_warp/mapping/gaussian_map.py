@@ -12,7 +12,7 @@ keyframe its Gaussians move with it (paper eq. 12-13), and whether it was seeded
 measured depth (a depth target: sensor, rig stereo, the MCBA depth, multi-view consistent)
 or at a guessed one (the fill); a guessed Gaussian becomes measured once a view's depth target
 agrees with it (:meth:`Mapper.densify_and_prune`). Clones and split children inherit it; the
-renderer turns it into a per-pixel confidence (:meth:`Mapper.measured_share`).
+renderer turns it into a per-pixel confidence (:meth:`Mapper.depth_confidence`).
 
 The map also owns its densification: per Gaussian, the sum over mapping steps and
 views of ``|dL/d mean2d|`` and the number of views that saw it (device float64 arrays);
@@ -223,12 +223,6 @@ class GaussianMap:
         guessed = np.concatenate(guessed)
         opacity = np.where(guessed, fill_opacity, INITIAL_OPACITY)
         return self.append(pts, cols, np.log(np.repeat(scale[:, None], 3, 1)), anchor, opacity_logits=logit(opacity), measured=~guessed)
-
-    def measured_colors(self) -> wp.array:
-        """[N] vec3 on the device: (1, 1, 1) for a measured Gaussian, 0 for a guessed one, the
-        colours that :meth:`Mapper.measured_share` blends."""
-        m = self.measured.astype(np.float32)
-        return wp.array(np.repeat(m[:, None], 3, 1), dtype=wp.vec3, device=self.device)
 
     def anchors_device(self) -> wp.array:
         """The anchors on the device (made on first use after the map changed)."""

@@ -20,7 +20,7 @@ Densify and prune every ``densify_every`` iterations: the map's gradient rules
 Gaussians where the current map leaves the image uncovered (rendered alpha below
 ``new_alpha``) or renders behind the measured depth, also where no depth was measured
 (faint, at the depth the map renders there, else at their neighbourhood's: ``insert_fill``; such a
-Gaussian is marked guessed until a view's depth target agrees with it, and :meth:`Mapper.measured_share`
+Gaussian is marked guessed until a view's depth target agrees with it, and :meth:`Mapper.depth_confidence`
 renders the measured share per pixel), and, with
 ``sky``, never on the view's sky (:mod:`.sky`), whose rendered
 alpha a cross-entropy term pushes to zero so the background shows there.
@@ -159,16 +159,30 @@ class Mapper:
         out = render(self.map.gaussians, views)
         return self.colour(out, views), out
 
-    def measured_share(self, out, views: Views) -> np.ndarray:
-        """[C,H,W] per pixel of ``out`` (a :meth:`render` of ``views`` by this map): the share of
-        its blended weight that comes from measured Gaussians (:attr:`GaussianMap.measured`), 0
-        where nothing renders. The rendered depth there was measured where it is at least 0.5,
-        else guessed (filled): the confidence beside every depth output."""
+    def depth_confidence(self, out, views: Views) -> tuple[np.ndarray, np.ndarray]:
+        """Per pixel of ``out`` (a :meth:`render` of ``views`` by this map), [C,H,W] each: the
+        share of its blended weight that comes from measured Gaussians
+        (:attr:`GaussianMap.measured`; 0 where nothing renders), and the spread of the blended
+        Gaussians' depths around the median depth, ``sqrt(sum w (z - z_median)^2 / alpha) /
+        z_median`` (inf where there is no median depth). A rendered depth was measured where the
+        share is at least 0.5, and it stands for one surface where the spread is small; at a
+        depth edge the blend mixes surfaces and the median may be either."""
+        import dataclasses
+
+        shape = out.alpha.shape
         if len(self.map) == 0:
-            return np.zeros(out.alpha.shape, np.float32)
-        share = blend(out.projection, out.bins, self.map.measured_colors(), views).color.numpy()[..., 0]
-        alpha = out.alpha.numpy()
-        return np.where(alpha > 1e-4, np.clip(share / np.maximum(alpha, 1e-4), 0.0, 1.0), 0.0).astype(np.float32)
+            return np.zeros(shape, np.float32), np.full(shape, np.inf, np.float32)
+        z = out.projection.depth.numpy()  # [C*N] each Gaussian's depth in each view
+        m = np.tile(self.map.measured.astype(np.float32), views.n)
+        colours = wp.array(np.stack([m, z, z * z], 1).astype(np.float32), dtype=wp.vec3, device=self.buf.device)
+        per_view = dataclasses.replace(out.projection, n_gaussians=z.shape[0])  # colours by (view, Gaussian), not by Gaussian
+        moments = blend(per_view, out.bins, colours, views).color.numpy().astype(np.float64)
+        alpha, med = out.alpha.numpy().astype(np.float64), out.median_depth.numpy().astype(np.float64)
+        a = np.maximum(alpha, 1e-4)
+        share = np.where(alpha > 1e-4, np.clip(moments[..., 0] / a, 0.0, 1.0), 0.0)
+        second = moments[..., 2] / a - 2 * med * moments[..., 1] / a + med * med
+        spread = np.where(med > 0, np.sqrt(np.maximum(second, 0.0)) / np.maximum(med, 1e-9), np.inf)
+        return share.astype(np.float32), spread.astype(np.float32)
 
     def add_keyframe(self, k: int, depths, placed=None) -> int:
         """Register keyframe ``k`` of the buffer with full-resolution depth targets

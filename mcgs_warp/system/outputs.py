@@ -6,13 +6,15 @@
   ``renders/frame_<i>_<camera>.png``: input | render of one frame the map was not fitted to
 * ``depth/keyframe_<k>_<camera>.png``: every keyframe view's rendered median depth, 16-bit
   millimetres, 0 = none or covered less than half (what RGB-D datasets use); ``confidence/keyframe_<k>_<camera>.png``
-  beside it: 8-bit, the share of the rendered weight from Gaussians placed at a measured depth
-  (255: measured, 0: guessed by the fill or no depth; 128 and above count as measured); ``images/keyframe_<k>_<camera>.jpg``: its
+  beside it: 8-bit, 255 where that depth was measured (most of the rendered weight from Gaussians
+  placed at a measured depth) and stands for one surface, 128 where it was measured but the blend
+  mixes surfaces (a depth edge: the median may be either), 0 where it was guessed by the fill or
+  there is none (:func:`confidence_levels`); ``images/keyframe_<k>_<camera>.jpg``: its
   input image (what ``mcgs-slam view`` shows in the keyframe's frustum)
 * ``metrics.json``: ATE (SE(3)- and Sim(3)-aligned; over every frame and over keyframes
   only), evo-style RPE and path length when ground truth exists, PSNR, SSIM over the
   keyframe views and over held-out non-keyframe frames, depth L1 (median depth; the
-  alpha-normalized depth's beside it; on measured and on guessed pixels) and its coverage against
+  alpha-normalized depth's beside it; on measured, mixed and guessed pixels) and its coverage against
   the sequence's exact depth (``gt/`` or exact sensor depth; never used by the run itself), the depth source and
   correspondences used, for an inexact prior its error before and after JDSA's scale grids,
   counts and timings
@@ -68,8 +70,8 @@ def groundtruth_in_map(est: Trajectory, gt: Trajectory, with_scale: bool) -> Tra
 def keyframe_views(slam):
     """Render every keyframe's views at their final poses, exposure applied: yields (k, c,
     rendered colour, median depth (where the transmittance crosses 0.5; 0 where the map covers
-    less than half), alpha-normalized depth, rendered alpha, measured share (the confidence:
-    :meth:`Mapper.measured_share`), input image, frame index)."""
+    less than half), alpha-normalized depth, rendered alpha, confidence level
+    (:func:`confidence_levels`), input image, frame index)."""
     m, buf = slam.mapper, slam.buf
     poses = buf.get_poses()
     exposure = m.buf.exposure.numpy()  # [capacity, C, 2] (log a, b)
@@ -77,11 +79,28 @@ def keyframe_views(slam):
         views = Views.create(m.cams, buf.rig.camera_poses(poses[k]), buf.device)
         colour, out = m.render(views)
         col, med, dep, alpha = colour.numpy(), out.median_depth.numpy(), out.depth.numpy(), out.alpha.numpy()
-        share = m.measured_share(out, views)
+        level = confidence_levels(*m.depth_confidence(out, views), med)
         for c, spec in enumerate(buf.rig.cameras):
             a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
             crop = (c, slice(0, spec.height), slice(0, spec.width))
-            yield k, c, np.clip(a * col[crop] + b, 0, 1), med[crop], dep[crop], alpha[crop], share[crop], buf.images[k][c], buf.frame_index[k]
+            yield k, c, np.clip(a * col[crop] + b, 0, 1), med[crop], dep[crop], alpha[crop], level[crop], buf.images[k][c], buf.frame_index[k]
+
+
+MEASURED, MIXED, GUESSED = 255, 128, 0  # the confidence PNGs' levels
+MAX_DEPTH_SPREAD = 0.1  # relative spread of the blended depths around the median beyond which a pixel mixes surfaces (chosen on street seed 11, RGB only: 73 % of the pixels measured and within it at 0.26 m L1, 23 % beyond it at 1.28 m; held-out seed 12: 73 % at 0.39 m, 3.3 m beyond)
+
+
+def confidence_levels(share: np.ndarray, spread: np.ndarray, median_depth: np.ndarray) -> np.ndarray:
+    """Per pixel (any shape, from :meth:`Mapper.depth_confidence`): ``MEASURED`` where the
+    median depth is mostly measured (share >= 0.5) and one surface (spread at most
+    ``MAX_DEPTH_SPREAD``), ``MIXED`` where measured but mixing surfaces, ``GUESSED`` where
+    guessed or without a median depth (uint8)."""
+    measured = (median_depth > 0) & (share >= 0.5)
+    return np.where(measured, np.where(spread <= MAX_DEPTH_SPREAD, MEASURED, MIXED), GUESSED).astype(np.uint8)
+
+
+def _mean_of(acc) -> float | None:
+    return acc[0] / acc[1] if acc[1] else None
 
 
 GUESSED_SHADE = 0.4  # brightness of guessed (filled) depth in the render panels' depth image
@@ -179,13 +198,13 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     n_render = slam.cfg.output.renders
     show = set(np.linspace(0, len(buf) - 1, min(n_render, len(buf))).astype(int).tolist()) if n_render else set()
     psnrs, ssims, depth_err, mixed_err, covered, with_depth = [], [], [], [], 0, 0
-    by_confidence = {True: [0.0, 0], False: [0.0, 0]}  # measured / guessed pixels: sum of |depth error| (m), count
+    by_level = {MEASURED: [0.0, 0], MIXED: [0.0, 0], GUESSED: [0.0, 0]}  # per confidence level: sum of |depth error| (m), pixels
     frames: dict = {}
     covers = [[] for _ in rig.cameras]  # per camera: share of each keyframe view the map covers
     measured_px = [[0, 0] for _ in rig.cameras]  # per camera: pixels with a median depth, of which measured
-    for k, c, col, dep, mixed, alpha, share, img, fidx in keyframe_views(slam):
+    for k, c, col, dep, mixed, alpha, level, img, fidx in keyframe_views(slam):
         covers[c].append(float(np.mean(alpha > 0.5)))
-        measured = (share >= 0.5) & (dep > 0)
+        measured = level == MEASURED
         measured_px[c][0] += int((dep > 0).sum())
         measured_px[c][1] += int(measured.sum())
         psnrs.append(psnr(col, img))
@@ -194,7 +213,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
             frames = {fidx: seq.gt_depths(fidx)}  # exact depth (evaluation only), loaded once per keyframe
         sensor = frames[fidx][c] if frames[fidx] is not None else None
         write_image(out / "depth" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", depth_to_mm(dep))
-        write_image(out / "confidence" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", np.where(dep > 0, share, 0.0))
+        write_image(out / "confidence" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", level / 255.0)
         write_image(out / "images" / f"keyframe_{k:03d}_{rig.cameras[c].name}.jpg", img)
         if sensor is not None:
             ok = (sensor > 0) & (dep > 0)
@@ -202,16 +221,16 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
             if ok.any():
                 err = np.abs(dep[ok] - sensor[ok])
                 depth_err.append(float(err.mean()))
-                for flag in (True, False):
-                    sel = measured[ok] == flag
-                    by_confidence[flag][0] += float(err[sel].sum())
-                    by_confidence[flag][1] += int(sel.sum())
+                for lv, acc in by_level.items():
+                    sel = level[ok] == lv
+                    acc[0] += float(err[sel].sum())
+                    acc[1] += int(sel.sum())
             ok_mixed = (sensor > 0) & (mixed > 0)
             if ok_mixed.any():
                 mixed_err.append(float(np.abs(mixed[ok_mixed] - sensor[ok_mixed]).mean()))
         if k in show:
             vmax = float(np.percentile(sensor[sensor > 0], 95)) if sensor is not None and (sensor > 0).any() else float(np.percentile(dep[dep > 0], 95)) if (dep > 0).any() else 1.0
-            shade = np.where(measured, 1.0, GUESSED_SHADE)[..., None]  # guessed depth dimmed: what the confidence PNG says
+            shade = np.where(level == GUESSED, GUESSED_SHADE, 1.0)[..., None]  # guessed depth dimmed: what the confidence PNG says
             write_image(out / "renders" / f"keyframe_{k:03d}_{rig.cameras[c].name}.png", np.concatenate([img, col, shade * depth_colormap(dep, vmax)], axis=1))
 
     held_psnr, held_ssim = [], []
@@ -234,9 +253,10 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "depth_l1_m": float(np.mean(depth_err)) if depth_err else None,  # the rendered median depth (the depth PNGs') against exact depth
         "depth_coverage": covered / with_depth if with_depth else None,  # fraction of exact-depth pixels the render gives a median depth (alpha above 0.5; depth_l1_m scores only those)
         "depth_l1_alpha_normalized_m": float(np.mean(mixed_err)) if mixed_err else None,  # the alpha-normalized depth (mixes faint Gaussians with those behind) over every pixel it covers
-        "depth_l1_measured_m": by_confidence[True][0] / by_confidence[True][1] if by_confidence[True][1] else None,  # the median depth's error on the pixels the confidence PNGs mark measured (measured share >= 0.5) ...
-        "depth_l1_filled_m": by_confidence[False][0] / by_confidence[False][1] if by_confidence[False][1] else None,  # ... and on those it marks guessed (filled); pixel-weighted, unlike depth_l1_m's mean over views
-        "depth_measured_fraction": by_confidence[True][1] / max(by_confidence[True][1] + by_confidence[False][1], 1) if by_confidence[True][1] + by_confidence[False][1] else None,  # share of the scored pixels marked measured
+        "depth_l1_measured_m": _mean_of(by_level[MEASURED]),  # the median depth's error on the pixels the confidence PNGs mark measured (one surface) ...
+        "depth_l1_mixed_m": _mean_of(by_level[MIXED]),  # ... measured but mixing surfaces (depth edges) ...
+        "depth_l1_filled_m": _mean_of(by_level[GUESSED]),  # ... and guessed (filled); pixel-weighted, unlike depth_l1_m's mean over views
+        "depth_measured_fraction": by_level[MEASURED][1] / scored if (scored := sum(v[1] for v in by_level.values())) else None,  # share of the scored pixels marked measured
         "measured_fraction_per_camera": {spec.name: measured_px[c][1] / measured_px[c][0] if measured_px[c][0] else None for c, spec in enumerate(rig.cameras)},  # per camera: share of the pixels with a rendered depth that the confidence marks measured (needs no ground truth)
         "map_coverage_per_camera": {spec.name: _quantiles(covers[c]) for c, spec in enumerate(rig.cameras)},  # share of a keyframe view's pixels the map covers (rendered alpha > 0.5): min and median over keyframes
         "depth_source": slam.tracker.prior.name,

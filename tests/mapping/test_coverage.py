@@ -247,7 +247,7 @@ def test_the_confidence_marks_guessed_depth_until_a_view_measures_it(mapping_seq
         assert 0.3 < guessed.mean() < 0.7, guessed.mean()
         views = m.views(0)
         out = render(m.map.gaussians, views)
-        share = m.measured_share(out, views)
+        share, _ = m.depth_confidence(out, views)
         for c, spec in enumerate(m.buf.rig.cameras):
             top, bottom = share[c, 8 : spec.height // 2 - 8, 8:-8], share[c, spec.height // 2 + 8 : spec.height - 8, 8 : spec.width - 8]
             assert (top < 0.5).mean() > 0.9 and (bottom >= 0.5).mean() > 0.9, (c, (top < 0.5).mean(), (bottom >= 0.5).mean())
@@ -272,3 +272,42 @@ def test_clones_and_split_children_inherit_whether_they_were_measured():
     assert (report.cloned, report.split) == (2, 2) and len(gmap) == 8
     scale = np.exp(gmap.to_numpy()["log_scales"]).max(1)
     np.testing.assert_array_equal(gmap.measured, scale < 0.05)  # the small ones and their clones; the split children are not
+
+
+def test_the_depth_spread_finds_pixels_that_mix_surfaces(mapping_seq):
+    """Seeded from the exact depth, the map renders one surface per pixel except at depth
+    edges, where splats of both sides blend: the spread of the blended depths around the
+    median is small inside surfaces and large on the edges of the true depth (where the
+    median depth's error is), so the confidence marks those pixels mixed."""
+    import cv2
+    from problems import Problem
+
+    from mcgs_warp.kernels import render
+    from mcgs_warp.mapping.mapper import Mapper
+    from mcgs_warp.system.outputs import MIXED, confidence_levels
+
+    m = Mapper(Problem(mapping_seq, KEYFRAMES[:1], cross_view=False).buf, config=MappingConfig(densify_every=0))
+    truth = [np.asarray(d, np.float32) for d in mapping_seq[KEYFRAMES[0]].depths]
+    m.add_keyframe(0, truth)
+    views = m.views(0)
+    out = render(m.map.gaussians, views)
+    share, spread = m.depth_confidence(out, views)
+    med = out.median_depth.numpy()
+    edge_spread, inner_spread, edge_err, inner_err = [], [], [], []
+    for c, spec in enumerate(m.buf.rig.cameras):
+        d = truth[c]
+        logd = np.log(np.maximum(d, 1e-3))
+        k = np.ones((5, 5), np.uint8)
+        edge = (cv2.dilate(logd, k) - cv2.erode(logd, k)) > 0.2
+        s, md = spread[c, : spec.height, : spec.width], med[c, : spec.height, : spec.width]
+        ok = (md > 0) & (d > 0)
+        edge_spread.append(s[ok & edge])
+        inner_spread.append(s[ok & ~edge])
+        err = np.abs(md - d) / np.maximum(d, 1e-3)
+        edge_err.append(err[ok & edge])
+        inner_err.append(err[ok & ~edge])
+        level = confidence_levels(share[c], spread[c], med[c])[: spec.height, : spec.width]
+        assert (level[ok & edge] == MIXED).mean() > 0.5 and (level[ok & ~edge] == MIXED).mean() < 0.05  # measured: 0.70-0.83 and 0.016-0.025
+    edge_spread, inner_spread = np.concatenate(edge_spread), np.concatenate(inner_spread)
+    assert len(edge_spread) > 100 and np.median(inner_spread) < 0.04 and np.median(edge_spread) > 3 * np.median(inner_spread), (np.median(edge_spread), np.median(inner_spread))
+    assert np.mean(np.concatenate(edge_err)) > 3 * np.mean(np.concatenate(inner_err))  # where the error is

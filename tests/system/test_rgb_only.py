@@ -68,8 +68,9 @@ def test_rgb_only_run_holds_metric_scale(sequences, tmp_path, monkeypatch):
     # (which scores above 1.5 m here); the far end of the corridor dominates what is left
     assert m["depth_l1_m"] < 0.45 and m["depth_coverage"] > 0.9, m
     assert len(list((tmp_path / "run" / "depth").glob("keyframe_*_front.png"))) == m["n_keyframes"]
-    # the pixels the confidence marks measured (96 %) carry less error than the fill's guesses: 0.34 against 0.64 m
-    assert m["depth_l1_measured_m"] < 0.75 * m["depth_l1_filled_m"] and m["depth_measured_fraction"] > 0.85, m
+    # the pixels the confidence marks measured (68 %) carry a fraction of the error of those it
+    # marks mixing surfaces (0.82 m) or guessed by the fill (0.64 m): 0.14 m
+    assert m["depth_l1_measured_m"] < 0.3 * min(m["depth_l1_filled_m"], m["depth_l1_mixed_m"]) and m["depth_measured_fraction"] > 0.5, m
 
 
 def test_jdsa_on_and_off_where_only_the_prior_carries_the_scale(tmp_path):
@@ -192,6 +193,6 @@ def test_a_camera_without_overlapping_neighbour_ends_covered(tmp_path):
     m = run_sequence(data, tmp_path / "run", cfg, progress=False)
     cover = m["map_coverage_per_camera"]
     assert cover["back"]["min"] >= 0.9, cover
-    # the confidence PNGs tell the measured depth from the guessed: measured 0.25 m, guessed
-    # (the fill's) 0.81 m against gt/ on 9 % of the pixels
-    assert m["depth_l1_filled_m"] > 2 * m["depth_l1_measured_m"] and 0.75 < m["depth_measured_fraction"] < 0.99, m
+    # the confidence PNGs tell the measured depth from the rest: measured (66 %) 0.14 m, mixing
+    # surfaces 0.55 m, guessed by the fill 0.81 m against gt/
+    assert m["depth_l1_filled_m"] > 3 * m["depth_l1_measured_m"] and m["depth_l1_mixed_m"] > 2 * m["depth_l1_measured_m"] and 0.5 < m["depth_measured_fraction"] < 0.95, m

@@ -53,15 +53,17 @@ def test_run_writes_every_output(run_dir):
     # the map covers every camera's view (a closed room: nothing is sky)
     cover = metrics["map_coverage_per_camera"]
     assert len(cover) == 3 and min(v["min"] for v in cover.values()) > 0.9, cover
-    # exact depth measured every pixel: what the map renders was measured (the confidence PNGs say so)
-    assert metrics["depth_measured_fraction"] > 0.95 and min(metrics["measured_fraction_per_camera"].values()) > 0.95, metrics
+    # exact depth measured every pixel: nothing the map renders was guessed (the confidence PNGs
+    # say so); 5 % of the pixels mix surfaces at depth edges and carry 9x the error (0.56 vs 0.06 m)
+    assert metrics["depth_l1_filled_m"] is None and metrics["depth_measured_fraction"] > 0.9 and min(metrics["measured_fraction_per_camera"].values()) > 0.9, metrics
+    assert metrics["depth_l1_mixed_m"] > 4 * metrics["depth_l1_measured_m"], metrics
     conf = sorted((run / "confidence").glob("keyframe_*.png"))
     assert len(conf) == 3 * metrics["n_keyframes"]
     import cv2
 
     c0 = cv2.imread(str(conf[0]), cv2.IMREAD_UNCHANGED)
     d0 = cv2.imread(str(run / "depth" / conf[0].name), cv2.IMREAD_UNCHANGED)
-    assert c0.dtype == np.uint8 and c0.shape == d0.shape and ((c0 >= 128) == (d0 > 0)).mean() > 0.95
+    assert c0.dtype == np.uint8 and c0.shape == d0.shape and set(np.unique(c0)) <= {0, 128, 255} and ((c0 > 0) == (d0 > 0)).all()
     assert metrics["loop_edges"] == 0  # six frames driving forward revisit nothing: an edge would be false
     assert metrics["tracking_failures"] == 0 and metrics["metric_scale"] is True
     traj = read_tum(run / "trajectory.txt")
