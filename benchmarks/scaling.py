@@ -1,6 +1,10 @@
-"""How the system scales with sequence length, on the closed-loop synthetic sequence.
+"""How the system scales with sequence length: the closed-loop synthetic room, or a street drive.
 
-    python benchmarks/scaling.py [--lengths 40 160 640] [--depth exact] [--out out/scaling]
+    python benchmarks/scaling.py [--scene room|street] [--lengths 40 160 640] [--depth exact] [--out out/scaling]
+
+``--scene street`` (lengths 50 150 300, RGB only by default): ``mcgs-slam synth --scene street
+--depth none --frames N``, 1 m per frame at 10 m/s (every frame is a keyframe), the road as long as
+the drive. The room:
 
 For each length N: ``mcgs-slam synth --trajectory loop --frames N`` (one loop back to its start
 at 0.55 m/s, the same distance per frame at every length: the full 35.5 m room loop from 640
@@ -57,17 +61,22 @@ print(json.dumps(m))
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--lengths", type=int, nargs="+", default=[40, 160, 640])
-    parser.add_argument("--depth", default="exact", choices=("exact", "mono", "none"))
+    parser.add_argument("--scene", default="room", choices=("room", "street"), help="room: the closed loop; street: a drive down the street")
+    parser.add_argument("--lengths", type=int, nargs="+", default=None, help="frames (default: room 40 160 640, street 50 150 300)")
+    parser.add_argument("--depth", default=None, choices=("exact", "mono", "none"), help="depth written (default: room exact, street none)")
     parser.add_argument("--out", default="out/scaling")
     args = parser.parse_args()
+    street = args.scene == "street"
+    lengths = args.lengths or ([50, 150, 300] if street else [40, 160, 640])
+    depth = args.depth or ("none" if street else "exact")
     out = Path(args.out)
     rows = []
-    for n in args.lengths:
-        data = out / f"loop_{n}"
+    for n in lengths:
+        data = out / (f"street_{depth}_{n}" if street else f"loop_{n}")
         if not (data / "timestamps.txt").is_file():
-            subprocess.run([sys.executable, "-m", "mcgs_warp", "synth", "--out", str(data), "--frames", str(n), "--trajectory", "loop", "--depth", args.depth, "--realism", "none"], check=True, capture_output=True)
-        res = subprocess.run([sys.executable, "-c", CHILD, str(data), str(out / f"run_{n}")], check=True, capture_output=True, text=True)
+            scene = ["--scene", "street"] if street else ["--trajectory", "loop", "--realism", "none"]
+            subprocess.run([sys.executable, "-m", "mcgs_warp", "synth", "--out", str(data), "--frames", str(n), "--depth", depth, *scene], check=True, capture_output=True)
+        res = subprocess.run([sys.executable, "-c", CHILD, str(data), str(out / f"run_{data.name}")], check=True, capture_output=True, text=True)
         m = json.loads(res.stdout.strip().splitlines()[-1])
         rows.append((n, m))
         print(f"done: {n} frames ({m['seconds_total']:.0f} s)", flush=True)
@@ -76,6 +85,9 @@ def main():
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n, m in rows:
         print(f"| {n} | {m['n_keyframes']} | {m['seconds_total'] / n:.2f} | {m['peak_rss_mb']:.0f} | {m['seconds'].get('global_ba', 0):.1f} | {1000 * m['ate_se3_rmse_m']:.1f} | {100 * m['ate_se3_rmse_m'] / m['path_length_m']:.2f} | {1000 * m['drift_before_global_ba_m']:.1f} | {1000 * m['drift_after_global_ba_m']:.1f} | {m['loops_confirmed']}/{m['loops_examined']} |")
+    if len(rows) > 1:
+        (n0, a), (n1, b) = rows[0], rows[-1]
+        print(f"\n{args.scene}: seconds per frame at {n1} frames / at {n0}: {(b['seconds_total'] / n1) / (a['seconds_total'] / n0):.2f}x; peak RSS {b['peak_rss_mb'] / a['peak_rss_mb']:.2f}x")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,15 @@ ROAD_HALF = 5.0  # m: the carriageway spans |y| < 5: two 3 m lanes, and cars par
 LANE = 1.5  # m: the rig drives along y = -LANE (the right lane), cars are parked at |y| > 3.1
 PAVEMENT = 3.0  # m: pavement width beside it, façades beyond
 CAMERA_HEIGHT = 1.6  # m: the rig body above the road
-ROAD_START, ROAD_END = -30.0, 260.0  # m along x
+ROAD_START, ROAD_END = -30.0, 260.0  # m along x: the road of a drive of up to 220 frames (at 10 Hz)
+SIGHT = 40.0  # m of road kept ahead of the drive's last pose
+
+
+def road_end(n_frames: int, rate: float = 10.0) -> float:
+    """Where the road of a drive of ``n_frames`` at ``rate`` Hz ends (m along x): :data:`ROAD_END`,
+    or farther where the drive would come within :data:`SIGHT` of it (a 300-frame drive is 300 m
+    long). Drives that fit keep the standard road, so their layouts stay what a seed gave."""
+    return max(ROAD_END, SPEED * max(n_frames - 1, 0) / rate + SIGHT)
 
 
 def street_trajectory(n_frames: int, rate: float = 10.0, seed: int = 0) -> Trajectory:
@@ -42,8 +50,9 @@ def street_trajectory(n_frames: int, rate: float = 10.0, seed: int = 0) -> Traje
     return Trajectory(t, T)
 
 
-def build_street(seed: int, device=None):
-    """Road, façades, parked cars, poles, trees and materials for ``seed``: the Warp ``Scene``."""
+def build_street(seed: int, device=None, end: float = ROAD_END):
+    """Road, façades, parked cars, poles, trees and materials for ``seed``, the road ending at
+    ``end`` (m along x, :func:`road_end`): the Warp ``Scene``."""
     from ..kernels.raycast import make_scene
 
     rng = np.random.default_rng(seed)
@@ -72,7 +81,7 @@ def build_street(seed: int, device=None):
     # façades: blocks of 8-25 m along both sides, 5-16 m tall, with gaps
     for side in (-1.0, 1.0):
         x = ROAD_START
-        while x < ROAD_END:
+        while x < end:
             length = rng.uniform(8.0, 25.0)
             depth, height = rng.uniform(6.0, 12.0), rng.uniform(5.0, 16.0)
             front = ROAD_HALF + PAVEMENT + rng.uniform(0.0, 1.5)
@@ -80,13 +89,13 @@ def build_street(seed: int, device=None):
             x += length + rng.uniform(0.0, 4.0)
     # pavements: kerbs 12 cm above the road
     for side in (-1.0, 1.0):
-        box([(ROAD_START + ROAD_END) / 2, side * (ROAD_HALF + PAVEMENT / 2), 0.06], [(ROAD_END - ROAD_START) / 2, PAVEMENT / 2, 0.06], 1)
+        box([(ROAD_START + end) / 2, side * (ROAD_HALF + PAVEMENT / 2), 0.06], [(end - ROAD_START) / 2, PAVEMENT / 2, 0.06], 1)
     # a block across the far end of the road: depth beyond 100 m down the road
-    box([ROAD_END + 20.0, 0.0, 15.0], [10.0, 30.0, 15.0], 2 + int(rng.integers(0, n_facade)))
+    box([end + 20.0, 0.0, 15.0], [10.0, 30.0, 15.0], 2 + int(rng.integers(0, n_facade)))
     # parked cars along both kerbs (none beside the start of the rig's lane for the first metres)
     for side in (-1.0, 1.0):
         x = ROAD_START + rng.uniform(0.0, 6.0)
-        while x < ROAD_END - 10:
+        while x < end - 10:
             if rng.random() < 0.7:
                 box([x, side * (ROAD_HALF - 1.0), 0.75], [2.1, 0.9, 0.75], 2 + n_facade + int(rng.integers(0, n_car)), rng.normal(0.0, 0.03))
             x += rng.uniform(5.5, 9.0)
@@ -94,7 +103,7 @@ def build_street(seed: int, device=None):
     spheres, radii, sphere_mats = [], [], []
     for side in (-1.0, 1.0):
         x = ROAD_START + rng.uniform(0.0, 10.0)
-        while x < ROAD_END:
+        while x < end:
             y = side * (ROAD_HALF + 0.6)
             if rng.random() < 0.5:
                 box([x, y, 2.5], [0.08, 0.08, 2.5], pole_mat)
@@ -106,5 +115,5 @@ def build_street(seed: int, device=None):
 
     sun = (rng.uniform(-0.5, 0.5), rng.uniform(-0.6, 0.6), rng.uniform(0.5, 1.0))
     ground = (ROAD_START, -1.0e4, 0.0)  # with open_sky only the floor's z (the road) is used
-    return make_scene(ground, (ROAD_END, 1.0e4, 1.0e4), [0] * 6, (centres, halves, np.array(yaws), mats), (np.reshape(spheres, (-1, 3)), radii, sphere_mats), (base, accent, freq, kind), sun, 0.5, 0.5,
+    return make_scene(ground, (end, 1.0e4, 1.0e4), [0] * 6, (centres, halves, np.array(yaws), mats), (np.reshape(spheres, (-1, 3)), radii, sphere_mats), (base, accent, freq, kind), sun, 0.5, 0.5,
                       open_sky=True, sky=((0.78, 0.84, 0.9), (0.35, 0.55, 0.85)), device=device)

@@ -223,9 +223,9 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         raise InputError(None, "--trajectory", f"expected forward or loop, got {trajectory!r}")
     rig = synthetic_rig(n_cameras, STREET_RIG if scene == "street" else RIG_CONFIG) if rig is None else rig
     if scene == "street":
-        from .street import build_street
+        from .street import build_street, road_end
 
-        world = build_street(seed, device)
+        world = build_street(seed, device, road_end(len(traj), FRAME_RATE))
     elif scene == "indoor":
         from .indoor import build_indoor
 

@@ -4,7 +4,7 @@ the depth range and layout a seed draws."""
 import numpy as np
 import pytest
 
-from mcgs_warp.data.street import CAMERA_HEIGHT, LANE, SPEED, build_street, street_trajectory
+from mcgs_warp.data.street import CAMERA_HEIGHT, LANE, ROAD_END, SPEED, build_street, road_end, street_trajectory
 from mcgs_warp.data.synthetic import SceneRenderer
 from mcgs_warp.rig import CameraSpec, Rig
 
@@ -64,3 +64,19 @@ def test_layout_is_deterministic_and_drawn_from_the_seed():
     centre, half = a.box_center.numpy(), a.box_half.numpy()
     lane = (np.abs(centre[:, 1] + LANE) - np.abs(half[:, 1]) < 1.1) & (centre[:, 2] - half[:, 2] < 2.5) & (centre[:, 0] < 250)
     assert not lane[np.abs(half[:, 0]) < 50].any()  # (the long kerbs and the far block excepted)
+
+
+def test_a_long_drive_gets_a_longer_road_and_a_short_one_keeps_its_layout():
+    """A 300-frame drive (300 m) would pass the standard road's end (260 m): its road goes on
+    beyond its last pose, façades included; drives that fit keep the standard road, so what a
+    seed gave the benchmark worlds stays."""
+    assert road_end(40) == road_end(220) == ROAD_END
+    end = road_end(300)
+    last = street_trajectory(300, 10.0, seed=0).positions[-1, 0]
+    assert end >= last + 40.0
+    np.testing.assert_array_equal(build_street(2).box_center.numpy(), build_street(2, end=road_end(200)).box_center.numpy())
+    long = build_street(2, end=end)
+    centre, half = long.box_center.numpy(), long.box_half.numpy()
+    facades = (np.abs(centre[:, 1]) > 8.0) & (np.abs(half[:, 0]) < 20.0)
+    assert centre[facades, 0].max() > last  # buildings beside the drive's end
+    assert centre[:, 0].max() > end  # the block across the far end, beyond it
