@@ -48,6 +48,7 @@ class RunScene:
     trajectory: np.ndarray | None = None  # [K,3] rig positions
     groundtruth: np.ndarray | None = None  # [M,3]
     n_total: int = 0  # Gaussians in the map before max_gaussians
+    measured: np.ndarray | None = None  # [N] bool: placed at a measured depth (None: the PLY does not say)
 
     @property
     def up(self) -> np.ndarray:
@@ -77,7 +78,7 @@ def load_run(run, max_gaussians: int = 500_000) -> RunScene:
     s2 = np.exp(2.0 * p["log_scales"][keep].astype(np.float64))
     cov = (R * s2[:, None, :]) @ np.swapaxes(R, 1, 2)
     scene = RunScene(p["means"][keep].astype(np.float32), cov.astype(np.float32), np.clip(p["colors"][keep], 0, 1).astype(np.float32),
-                     opacity[keep, None].astype(np.float32), n_total=len(opacity))
+                     opacity[keep, None].astype(np.float32), n_total=len(opacity), measured=None if p["measured"] is None else p["measured"][keep])
     if (run / "rig.yaml").is_file() and (run / "keyframes.txt").is_file():
         rig, kfs = load_rig(run / "rig.yaml"), read_tum(run / "keyframes.txt")
         for k, T in enumerate(kfs.poses):
@@ -109,6 +110,17 @@ def _wxyz(T: np.ndarray) -> np.ndarray:
 
 def _polyline(points: np.ndarray) -> np.ndarray:
     return np.stack([points[:-1], points[1:]], axis=1).astype(np.float32)
+
+
+GUESSED_COLOUR = (1.0, 0.0, 1.0)  # magenta: Gaussians placed at a guessed depth, when the viewer marks them
+
+
+def marked_colours(rgbs: np.ndarray, measured: np.ndarray | None, mark: bool) -> np.ndarray:
+    """The splats' colours [N,3]; with ``mark`` the guessed ones (``~measured``) in
+    :data:`GUESSED_COLOUR`, so a user sees which depth nothing measured."""
+    if not mark or measured is None:
+        return rgbs
+    return np.where(np.asarray(measured, bool)[:, None], rgbs, np.asarray(GUESSED_COLOUR, rgbs.dtype))
 
 
 def build_scene(server, scene: RunScene) -> dict:
@@ -154,6 +166,15 @@ def build_scene(server, scene: RunScene) -> dict:
         choose.on_update(lambda event: look_through(choose.value, [event.client] if event.client is not None else None))
         show_frusta = server.gui.add_checkbox("Keyframe cameras", True)
         show_lines = server.gui.add_checkbox("Trajectories", True)
+        if scene.measured is not None and len(scene.centers):
+            mark = server.gui.add_checkbox(f"Guessed depth in magenta ({100 * (1 - scene.measured.mean()):.0f} % of the Gaussians)", False)
+
+            def mark_guessed(on: bool) -> None:
+                handles["splats"].remove()
+                handles["splats"] = server.scene.add_gaussian_splats("/map", scene.centers, scene.covariances, marked_colours(scene.rgbs, scene.measured, on), scene.opacities)
+
+            mark.on_update(lambda _: mark_guessed(mark.value))
+            handles["mark_guessed"] = mark_guessed
 
     def toggle(_):
         for _, f in handles["frusta"]:

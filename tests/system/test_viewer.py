@@ -18,7 +18,7 @@ from mcgs_warp.io import write_image
 from mcgs_warp.io.ply import write_ply
 from mcgs_warp.rig import CameraSpec, Rig, save_rig
 from mcgs_warp.system.outputs import groundtruth_in_map
-from mcgs_warp.viewer import load_run, start, stop, vertical_fov
+from mcgs_warp.viewer import GUESSED_COLOUR, load_run, marked_colours, start, stop, vertical_fov
 
 N_GAUSSIANS, N_KEYFRAMES = 200, 4
 
@@ -37,7 +37,8 @@ def run_folder(tmp_path_factory):
     rng = np.random.default_rng(0)
     q = Rotation.random(N_GAUSSIANS, random_state=1).as_quat()  # x, y, z, w
     write_ply(root / "map.ply", {"means": rng.uniform(-2, 2, (N_GAUSSIANS, 3)) + [5, 0, 0], "quats": q, "log_scales": rng.uniform(-4, -1, (N_GAUSSIANS, 3)),
-                                 "opacity_logits": rng.normal(0, 2, N_GAUSSIANS), "colors": rng.uniform(0, 1, (N_GAUSSIANS, 3))})
+                                 "opacity_logits": rng.normal(0, 2, N_GAUSSIANS), "colors": rng.uniform(0, 1, (N_GAUSSIANS, 3)),
+                                 "measured": np.arange(N_GAUSSIANS) % 4 != 0})
     R_b_c = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # camera z forward = body x, camera y down = -body z
     rig = Rig([CameraSpec("front", "pinhole", 64, 48, (50.0, 50.0, 32.0, 24.0), T_b_c=pose(np.zeros(3), Rotation.from_matrix(R_b_c).as_quat())),
                CameraSpec("left", "pinhole", 64, 48, (40.0, 40.0, 32.0, 24.0), T_b_c=pose([0, 0.3, 0], Rotation.from_matrix(Rotation.from_euler("z", 90, degrees=True).as_matrix() @ R_b_c).as_quat()))])
@@ -67,6 +68,11 @@ def test_load_run_gives_the_maps_splats(run_folder):
     np.testing.assert_allclose(scene.up, [0, 0, 1], atol=1e-9)  # the cameras' -y: the world's z
     assert scene.cameras[2][0] == "keyframe 1 / front" and scene.cameras[2][4].shape == (48, 64, 3)
     assert vertical_fov(scene.cameras[0][2]) == pytest.approx(2 * np.arctan(24 / 50))
+    np.testing.assert_array_equal(scene.measured, p["measured"])
+    marked = marked_colours(scene.rgbs, scene.measured, True)
+    np.testing.assert_array_equal(marked[scene.measured], scene.rgbs[scene.measured])
+    assert (marked[~scene.measured] == GUESSED_COLOUR).all() and (~scene.measured).sum() == N_GAUSSIANS // 4
+    np.testing.assert_array_equal(marked_colours(scene.rgbs, scene.measured, False), scene.rgbs)
     few = load_run(run_folder, max_gaussians=10)  # the most opaque ten
     assert len(few.centers) == 10 and few.n_total == N_GAUSSIANS
     assert few.opacities.min() >= np.sort(scene.opacities[:, 0])[-10] - 1e-7
@@ -116,6 +122,21 @@ def test_view_serves_the_page_and_the_scene(run_folder):
         assert not frusta["keyframe 2 / left"].visible and frusta["keyframe 2 / front"].visible
         handles["look_through"]("free camera")
         assert all(f.visible for f in frusta.values())
+        # marking the guessed Gaussians sends the map again, the guessed ones magenta (viser's
+        # buffer: 32 bytes per splat, the colour in bytes 28-30), and back
+        def splat_colours():
+            return np.asarray(handles["splats"].buffer).view(np.uint8).reshape(-1, 32)[:, 28:31]
+
+        scene = load_run(run_folder)
+        before = splat_colours()
+        handles["mark_guessed"](True)
+        marked = splat_colours()
+        assert (marked[~scene.measured] == [255, 0, 255]).all() and np.array_equal(marked[scene.measured], before[scene.measured])
+        assert not np.array_equal(before[~scene.measured], marked[~scene.measured])
+        kinds = [m["type"] for m in _scene_messages(port, want=2 * N_KEYFRAMES)]
+        assert kinds.count("GaussianSplatsMessage") == 1  # the map replaced, not doubled
+        handles["mark_guessed"](False)
+        np.testing.assert_array_equal(splat_colours(), before)
         with pytest.raises(InputError, match=f"--port: cannot listen on 127.0.0.1:{port} .*choose another port"):
             start(run_folder, port=port)
     finally:
