@@ -231,13 +231,14 @@ class FactorGraph:
         return edges, t, w
 
     # ---- edge choice -------------------------------------------------------------------
-    def update_window(self, keyframes, cross_view: bool = True, cross_time: bool = False, max_gap: int | None = None) -> np.ndarray:
+    def update_window(self, keyframes, cross_view: bool = True, cross_time: bool = False, max_gap: int | None = None, config=None) -> np.ndarray:
         """Make the active set the overlap-chosen edges among ``keyframes``
         (:func:`overlap_edges`, current geometry): active edges outside the window or no
         longer chosen are stored (loop edges inside the window stay); chosen ones are
         activated (with kept correspondences where known). Returns the edges [N,5] still
-        without correspondences, for the caller to :meth:`compute` with its providers."""
-        chosen = overlap_edges(self.buf, keyframes, self.rig_overlap, self.cfg, cross_view=cross_view, cross_time=cross_time, max_gap=max_gap)
+        without correspondences, for the caller to :meth:`compute` with its providers.
+        ``config``: the edge choice's GraphConfig instead of the graph's own (global BA's)."""
+        chosen = overlap_edges(self.buf, keyframes, self.rig_overlap, config or self.cfg, cross_view=cross_view, cross_time=cross_time, max_gap=max_gap)
         keep = set(self._keys(chosen))
         win = {int(k) for k in keyframes}
         drop = [k for k in self._active if not (k in keep or (self._kind[k] == LOOP and k[0] in win and k[2] in win))]

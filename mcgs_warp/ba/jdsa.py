@@ -150,13 +150,13 @@ def update_scales(buffer, keyframes, stats=None, hold_mean: bool = False, reg: f
             buffer.scales[k].assign(new[v])
 
 
-def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None, hold_mean: bool = False, keypoints=None, factors=()):
+def mcba_with_jdsa(mcba, edges, targets, weights, keyframes=None, rounds: int = 3, fixed=None, hold_mean: bool = False, keypoints=None, factors=(), config=None):
     """Alternate MCBA (with the scaled prior) and the scale update, ``rounds`` times
-    (``hold_mean``: see :func:`update_scales`)."""
+    (``hold_mean``: see :func:`update_scales`; ``config``: the solves' MCBAConfig, default the solver's)."""
     stats = []
     if keyframes is None:
         keyframes = np.unique(np.concatenate([edges[:, 0], edges[:, 2]]))
     for _ in range(rounds):
-        stats.append(mcba.solve(edges, targets, weights, keyframes=keyframes, fixed=fixed, keypoints=keypoints, factors=factors))
+        stats.append(mcba.solve(edges, targets, weights, keyframes=keyframes, fixed=fixed, keypoints=keypoints, factors=factors, config=config))
         update_scales(mcba.buf, keyframes, stats[-1], hold_mean=hold_mean)
     return stats

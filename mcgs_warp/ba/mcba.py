@@ -156,7 +156,7 @@ class MCBA:
         return [int(k) for k in keyframes]
 
     # ----------------------------------------------------------------------------------
-    def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None, keypoints=None, factors=()) -> MCBAStats:
+    def solve(self, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray, keyframes=None, fixed=None, keypoints=None, factors=(), config: MCBAConfig | None = None) -> MCBAStats:
         """Run LM iterations over ``edges`` [E,>=4] with correspondences ``targets``
         [E,h,w,2] (reduced-grid pixels) and ``weights`` [E,h,w].
 
@@ -167,10 +167,11 @@ class MCBA:
         whose tracks are solved with it (their inverse depths are updated in place);
         ``factors``: more pose factors over the window's slots with the same interface
         (``cost``, ``reduced_terms``, ``candidate``, ``accept``; e.g.
-        :class:`~mcgs_warp.ba.depth_factors.DepthAlignmentFactors`)."""
+        :class:`~mcgs_warp.ba.depth_factors.DepthAlignmentFactors`); ``config``: this solve's
+        settings instead of the solver's own (global BA's iterations and prior weight)."""
         from .keypoint_factors import KeypointFactors, window_poses
 
-        cfg = self.cfg
+        cfg = config or self.cfg
         edges = np.asarray(edges)
         keyframes = self._window(edges, keyframes)
         fixed = {keyframes[0]} if fixed is None else {int(k) for k in fixed}

@@ -246,8 +246,9 @@ class Mapper:
             self.adam.remap(name, index, len(index), width)
 
     # ----------------------------------------------------------------------------------
-    def step(self, k: int | None = None) -> StepResult:
-        """One optimization step on keyframe ``k`` (default: a random registered keyframe)."""
+    def step(self, k: int | None = None, densify: bool = True) -> StepResult:
+        """One optimization step on keyframe ``k`` (default: a random registered keyframe);
+        ``densify``: densify and prune when the iteration count says so (``densify_every``)."""
         from ..kernels.mapping import count_nonfinite_kernel, isotropy_loss_kernel
 
         t0 = time.perf_counter()
@@ -307,7 +308,7 @@ class Mapper:
         if step_pose:
             self._step_pose(k, grads.pose)
         self.iteration += 1
-        if cfg.densify_every and self.iteration % cfg.densify_every == 0:
+        if densify and cfg.densify_every and self.iteration % cfg.densify_every == 0:
             self.densify_and_prune()
         if cfg.opacity_reset_every and self.iteration % cfg.opacity_reset_every == 0:
             self.reset_opacity()
@@ -442,11 +443,13 @@ class Mapper:
                 agree += has & (np.abs(z[sl] - d) <= tol * d)
         return radius, front, agree
 
-    def optimize(self, iterations: int, keyframes=None, progress=None) -> list[StepResult]:
+    def optimize(self, iterations: int, keyframes=None, progress=None, densify: bool = True) -> list[StepResult]:
+        """``iterations`` steps on random keyframes of ``keyframes`` (default: every registered
+        one), densifying on schedule unless ``densify`` is false."""
         keys = sorted(self.buf.targets) if keyframes is None else list(keyframes)
         results = []
         for it in range(iterations):
-            results.append(self.step(keys[self.rng.integers(len(keys))]))
+            results.append(self.step(keys[self.rng.integers(len(keys))], densify=densify))
             if progress is not None:
                 progress(it, results[-1])
         return results

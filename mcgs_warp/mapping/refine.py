@@ -17,16 +17,13 @@ def joint_refinement(mapper: Mapper, iterations: int, poses: bool = True, exposu
     Gaussians cloned or split near the end would reach the output unoptimized (a densify
     at the last step of a fit costs 1-3 dB on tests/mapping's fixture)."""
     mapper.optimize_poses, mapper.optimize_exposure = poses, exposure
-    densify_every = mapper.cfg.densify_every
     half = iterations // 2
     try:
         results = mapper.optimize(half, progress=progress)
-        mapper.cfg.densify_every = 0
         report = None if progress is None else (lambda it, r: progress(half + it, r))
-        return results + mapper.optimize(iterations - half, progress=report)
+        return results + mapper.optimize(iterations - half, progress=report, densify=False)
     finally:
         mapper.optimize_poses = mapper.optimize_exposure = False
-        mapper.cfg.densify_every = densify_every
 
 
 def exposure_gains(mapper: Mapper) -> np.ndarray:

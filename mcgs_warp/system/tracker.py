@@ -159,13 +159,13 @@ class Tracker:
             # and a metric prior too: KITTI SE(3) ATE 0.771 vs 0.778 m, fewer confident matches)
             g.compute(self.guided if guided_new else self.guided_or_raw if self.exact_depth else self.flow, missing[~cross])
 
-    def _solve(self, keyframes, fresh=(), guided_new: bool = False) -> list:
+    def _solve(self, keyframes, fresh=(), guided_new: bool = False, config=None) -> list:
         """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``
         outer rounds; between rounds the correspondences of edges touching ``fresh``
         keyframes follow the new geometry. Each pose change, and each depth change of a mapped
         keyframe with its fresh mapping depth targets, is queued for the map to follow
-        (:meth:`take_update`). Returns each round's
-        ``(MCBAStats, total correspondence weight)``."""
+        (:meth:`take_update`). ``config``: the solves' MCBAConfig (default MCBA's own). Returns
+        each round's ``(MCBAStats, total correspondence weight)``."""
         rounds = max(1, self.cfg.tracking.flow_rounds)
         out = []
         for r in range(rounds):
@@ -180,9 +180,9 @@ class Tracker:
             kp, roots = self._keypoint_problem(keyframes, before)
             geometric = self._depth_factors(keyframes, edges) + self._odometry_factors(keyframes)
             if self.jdsa_active:
-                stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges, keypoints=kp, factors=geometric, fixed=self.held(keyframes))[-1]
+                stats = mcba_with_jdsa(self.mcba, edges, targets, weights, keyframes=keyframes, rounds=1, hold_mean=not self.metric_edges, keypoints=kp, factors=geometric, fixed=self.held(keyframes), config=config)[-1]
             else:
-                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes, keypoints=kp, factors=geometric, fixed=self.held(keyframes))
+                stats = self.mcba.solve(edges, targets, weights, keyframes=keyframes, keypoints=kp, factors=geometric, fixed=self.held(keyframes), config=config)
             out.append((stats, float(np.nansum(weights))))
             after = self.buf.get_poses()
             if kp is not None:
@@ -591,22 +591,12 @@ class Tracker:
         prior's weight is 0: an inexact prior, JDSA-scaled to the online estimate, would only
         hold that estimate in place. Returns what the map must follow (:meth:`take_update`)."""
         everything = list(range(len(self.buf)))
-        online = self.graph.cfg
-        self.graph.cfg = replace(online, max_per_view=2 * radius, min_overlap=GLOBAL_BA_MIN_OVERLAP)
-        try:
-            self.graph.update_window(everything, cross_view=self.overlap is not None, max_gap=radius)
-        finally:
-            self.graph.cfg = online
+        long_edges = replace(self.graph.cfg, max_per_view=2 * radius, min_overlap=GLOBAL_BA_MIN_OVERLAP)
+        self.graph.update_window(everything, cross_view=self.overlap is not None, max_gap=radius, config=long_edges)
         self.measure(guided_new=True)
         self.loops = self.graph.close_loops(self.oracle or self.guided)
-        saved = self.mcba.cfg.iterations, self.mcba.cfg.prior_weight
-        self.mcba.cfg.iterations = iterations
-        if not self.exact_depth:
-            self.mcba.cfg.prior_weight = 0.0
-        try:
-            self._solve(everything, guided_new=True)
-        finally:
-            self.mcba.cfg.iterations, self.mcba.cfg.prior_weight = saved
+        offline = replace(self.mcba.cfg, iterations=iterations, prior_weight=self.mcba.cfg.prior_weight if self.exact_depth else 0.0)
+        self._solve(everything, guided_new=True, config=offline)
         return self.take_update()
 
 
