@@ -1,7 +1,7 @@
 """The keyframe buffer: the one place holding what tracking and mapping share.
 
 Per keyframe: timestamp, source frame index, full-resolution images (host, for flow
-and mapping), and on the buffer's Warp device the rig pose ``T_w_b``, the affine
+and mapping: 8-bit where that holds them exactly, see :func:`compact_image`), and on the buffer's Warp device the rig pose ``T_w_b``, the affine
 exposures and, per camera, inverse depth on the reduced grid, the depth prior (sensor
 or monocular depth, m, 0 = none), its confidence and its JDSA scale grid (the scaled
 prior ``depth_prior * bilinear(scales)`` is derived when needed, on the device:
@@ -35,6 +35,27 @@ def reduced_camera(spec: CameraSpec, stride: int, offset: float | None = None) -
         spec.name, spec.model, spec.width // stride, spec.height // stride,
         (fx / stride, fy / stride, (cx - o) / stride, (cy - o) / stride), spec.distortion, spec.T_b_c, spec.time_offset,
     )  # fmt: skip
+
+
+def compact_image(image: np.ndarray) -> np.ndarray:
+    """An RGB image [H,W,3] in [0,1] as the buffer keeps it: uint8 when every value is
+    exactly ``n / 255`` (what the readers make of an 8-bit file: a quarter of the float32's
+    memory, and :func:`float_image` gives back the same float32 bit for bit), else float32
+    as it is (resampled or synthetic colours, a test's edits: no precision is lost); ``None`` stays."""
+    if image is None:
+        return None
+    image = np.asarray(image)
+    if image.dtype == np.uint8:
+        return image
+    image = np.asarray(image, np.float32)
+    with np.errstate(invalid="ignore"):
+        n = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return n if np.array_equal(float_image(n), image) else image
+
+
+def float_image(image: np.ndarray) -> np.ndarray:
+    """A stored image (:func:`compact_image`) as float32 RGB in [0,1], as the readers give it."""
+    return image.astype(np.float32) / 255.0 if image is not None and image.dtype == np.uint8 else image
 
 
 def grid_pixels(spec: CameraSpec, stride: int) -> np.ndarray:
@@ -72,6 +93,7 @@ class KeyframeBuffer:
         self.targets: dict[int, list] = {}
         self.timestamps: list[float] = []
         self.frame_index: list[int] = []
+        #: keyframe -> per camera its image as stored (:func:`compact_image`); read it with :meth:`image`
         self.images: list[list[np.ndarray]] = []
         self._full_rays = None
         self.capacity = 0
@@ -125,7 +147,7 @@ class KeyframeBuffer:
             self._grow(2 * self.capacity)
         self.timestamps.append(float(timestamp))
         self.frame_index.append(int(frame_index))
-        self.images.append(list(images))
+        self.images.append([compact_image(im) for im in images])
         self.set_poses(np.asarray(T_w_b)[None], start=k)
         self.disp[k].assign(np.asarray(disp, dtype=np.float32))
         if depth_prior is not None:
@@ -135,6 +157,14 @@ class KeyframeBuffer:
             else:
                 self.prior_conf[k].assign(np.asarray(prior_conf, dtype=np.float32))
         return k
+
+    def image(self, k: int, c: int) -> np.ndarray:
+        """Keyframe ``k``'s image of camera ``c``: float32 RGB [H,W,3] in [0,1]."""
+        return float_image(self.images[k][c])
+
+    def keyframe_images(self, k: int) -> list:
+        """Keyframe ``k``'s images, one per camera (:meth:`image`)."""
+        return [self.image(k, c) for c in range(len(self.images[k]))]
 
     def get_poses(self) -> np.ndarray:
         """Rig poses ``T_w_b`` [K,4,4] of the keyframes."""

@@ -164,14 +164,14 @@ class DISFlow(FlowProvider):
             if (i, ci, j, cj) in reverse:
                 targets[e], weights[e] = reverse.pop((i, ci, j, cj))
                 continue
-            forward, back = self.flows(buffer.images[i][ci], buffer.images[j][cj])
+            forward, back = self.flows(buffer.image(i, ci), buffer.image(j, cj))
             targets[e], weights[e] = grid_targets(buffer, ci, cj, *forward)
             if (j, cj, i, ci) in wanted:
                 reverse[(j, cj, i, ci)] = grid_targets(buffer, cj, ci, *back)
         for e, (i, ci, j, cj) in enumerate(edges[:, :4].tolist()):  # texture at both ends: a flat target matches anything
             uv = grid_pixels(buffer.rig.cameras[ci], buffer.stride)
             h, w = uv.shape[:2]
-            weights[e, :h, :w] *= textured(buffer.images[i][ci], uv) & textured(buffer.images[j][cj], from_reduced(targets[e, :h, :w], buffer.stride))
+            weights[e, :h, :w] *= textured(buffer.image(i, ci), uv) & textured(buffer.image(j, cj), from_reduced(targets[e, :h, :w], buffer.stride))
         return targets, weights
 
 
@@ -313,7 +313,7 @@ class StereoMatches(FlowProvider):
         for e, (i, ci, j, cj) in enumerate(edges[:, :4]):
             if i != j or (ci, cj) not in self.stereo.pairs:
                 continue
-            res = self.stereo.pair_sweeps(buffer.frame_index[i], buffer.images[i])[(ci, cj)]
+            res = self.stereo.pair_sweeps(buffer.frame_index[i], buffer.keyframe_images(i))[(ci, cj)]
             spec = rig.cameras[ci]
             uv = grid_pixels(spec, s).astype(int)
             h, w = uv.shape[:2]
@@ -325,7 +325,7 @@ class StereoMatches(FlowProvider):
                 has = (conf > 0) & (z > 0)
                 for c in (ci, cj):
                     if (i, c) not in greys:
-                        greys[(i, c)] = grey(buffer.images[i][c], 1)
+                        greys[(i, c)] = grey(buffer.image(i, c), 1)
                 rho, _ = refine_points(greys[(i, ci)], buffer.full_rays[int(ci)], greys[(i, cj)], rig.cameras[cj].warp_camera(), T, uv[has], 1.0 / z[has], self.refine_px, self.refine_count, self.refine_radius, self.stereo.cfg.min_std, buffer.device)
                 z[has] = np.where(rho > 0, 1.0 / np.maximum(rho, 1e-12), 0.0)
                 conf = np.where(z > 0, conf, 0.0)
@@ -460,8 +460,8 @@ class GuidedDIS(FlowProvider):
         pred = reproject(buffer.full_rays[ci][: spec_i.height, : spec_i.width], inv, T, spec_j.warp_camera(), buffer.device)  # NaN where unknown
         mx = np.nan_to_num(pred[..., 0], nan=-1e4).astype(np.float32)
         my = np.nan_to_num(pred[..., 1], nan=-1e4).astype(np.float32)
-        warped = cv2.remap(buffer.images[j][cj], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        flow, conf = dis.flow(buffer.images[i][ci], warped)
+        warped = cv2.remap(buffer.image(j, cj), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        flow, conf = dis.flow(buffer.image(i, ci), warped)
         uv = grid_pixels(spec_i, s).astype(np.float32)
         ui, vi = uv[..., 0].astype(int), uv[..., 1].astype(int)
         q = uv + flow[vi, ui]
@@ -470,7 +470,7 @@ class GuidedDIS(FlowProvider):
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(t).all(-1) & (t[..., 0] >= 0) & (t[..., 0] <= spec_j.width - 1) & (t[..., 1] >= 0) & (t[..., 1] <= spec_j.height - 1)
         target[:hr, :wr] = np.where(ok[..., None], to_reduced(t.astype(np.float64), s), 0.0)
-        weight[:hr, :wr] = conf[vi, ui] * ok * textured(buffer.images[i][ci], uv) * textured(buffer.images[j][cj], np.where(ok[..., None], t, 0.0))
+        weight[:hr, :wr] = conf[vi, ui] * ok * textured(buffer.image(i, ci), uv) * textured(buffer.image(j, cj), np.where(ok[..., None], t, 0.0))
 
     def photometric(self, buffer: KeyframeBuffer, edges: np.ndarray, targets: np.ndarray, weights: np.ndarray):
         """``weights`` times ``exp(-(SAD / photo_sigma)^2)`` at each matched grid pixel:
@@ -490,7 +490,7 @@ class GuidedDIS(FlowProvider):
         def view(k, c):
             if (k, c) not in index:
                 index[(k, c)] = len(views)
-                views.append(cv2.cvtColor(np.asarray(buffer.images[k][c], np.float32), cv2.COLOR_RGB2GRAY))
+                views.append(cv2.cvtColor(np.asarray(buffer.image(k, c), np.float32), cv2.COLOR_RGB2GRAY))
             return index[(k, c)]
 
         uv_a = np.full(weights.shape + (2,), -1e4, np.float32)  # outside a camera's grid: weight 0

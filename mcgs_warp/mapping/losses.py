@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..buffer import float_image
 from ..kernels import Camera
 from ..kernels.launch import run_row_bands
 from ..kernels.losses import (
@@ -39,6 +40,11 @@ from ..kernels.losses import (
     target_normals_kernel,
     vec8d,
 )
+
+#: bytes of device memory the per-keyframe target cache may hold (:class:`MappingLoss`): 31 keyframes
+#: of a 3-camera rig at 320x240 (it held 32 before it was counted in bytes), all of KITTI's stereo pair at
+#: 640x194 up to 60 keyframes, 5 of a 6-camera surround rig at 640x360 (72 MB each: 32 of them were 2.3 GB)
+CACHE_BYTES = 384 << 20
 
 # Pixels of a row per thread in the two passes that also reduce: a whole row on the CPU
 # (sums stay in registers), 16 on CUDA (enough threads, short per-camera sums).
@@ -90,10 +96,11 @@ class MappingLoss:
     """The device loss of a batch of C views (one keyframe's rig views).
 
     ``cameras``: the C full-resolution :class:`Camera` structs (their sizes bound each
-    view; images are padded to the largest). ``cache_size``: keyframes whose targets stay
-    on the device. Work buffers are allocated once and reused by every call."""
+    view; images are padded to the largest). ``cache_bytes``: device memory the keyframes
+    whose targets stay on the device may take (at least 2 keyframes; :attr:`cache_size`
+    of them). Work buffers are allocated once and reused by every call."""
 
-    def __init__(self, cameras: list, device=None, cache_size: int = 32, rays=None):
+    def __init__(self, cameras: list, device=None, cache_bytes: int = CACHE_BYTES, rays=None):
         from ..kernels import losses as loss_kernels
         from ..kernels.ba import grid_rays_kernel
 
@@ -111,7 +118,9 @@ class MappingLoss:
             raise ValueError(f"MappingLoss: rays must be {tuple(self.shape)} on {self.device}, got {tuple(rays.shape)} on {rays.device}")
         self.rays = rays
         self._no_ray = ~np.isfinite(rays.numpy()).all(-1)  # [C,H,W]: pixels without a ray get no depth target
-        self.cache_size = max(1, int(cache_size))
+        #: device bytes of one keyframe's targets: image, SSIM mean and variance, normals (vec3), depth, sky
+        self.keyframe_bytes = self.C * self.H * self.W * 4 * (4 * 3 + 2)
+        self.cache_size = max(2, int(cache_bytes) // self.keyframe_bytes)
         self._cache: OrderedDict[int, KeyframeTargets] = OrderedDict()
         vec3_maps = [wp.zeros(self.shape, dtype=wp.vec3, device=self.device) for _ in range(8)]
         self._h = vec3_maps[0:3]  # horizontal passes
@@ -143,13 +152,14 @@ class MappingLoss:
 
     # ----------------------------------------------------------------------------------
     def make_targets(self, images, depths, sky=None) -> KeyframeTargets:
-        """Upload one keyframe's targets: ``images[c]`` [h_c,w_c,3] in [0,1], ``depths[c]``
+        """Upload one keyframe's targets: ``images[c]`` [h_c,w_c,3] in [0,1] (float, or 8-bit as
+        the keyframe buffer stores it: :func:`~mcgs_warp.buffer.float_image`), ``depths[c]``
         [h_c,w_c] m (0 or ``None`` = none) per camera; precompute the target-only SSIM
         statistics and normals. ``sky[c]`` ([h_c,w_c] bool or ``None``): pixels that get no
         depth target and the sky term (:mod:`mcgs_warp.mapping.sky`)."""
         dev, C, H, W = self.device, self.C, self.H, self.W
         depths = list(depths) if depths is not None else [None] * C
-        img = wp.array(pad_images(images, C, H, W, 3), dtype=wp.vec3, device=dev)
+        img = wp.array(pad_images([float_image(im) for im in images], C, H, W, 3), dtype=wp.vec3, device=dev)
         dep_np = pad_images(depths, C, H, W)
         dep_np[self._no_ray] = 0.0
         sky_arr = None

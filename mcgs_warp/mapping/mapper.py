@@ -193,7 +193,7 @@ class Mapper:
         self.buf.targets[k] = list(depths)
         if placed is not None:
             self.placed[k] = np.asarray(placed)
-        images = self.buf.images[k]
+        images = self.buf.keyframe_images(k)
         if self.cfg.sky:
             self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None, far=self.cfg.insert_max_depth) for c in range(len(self.cams))]
         free = [np.ones((s.height, s.width), bool) if not self.cfg.sky else ~self.sky[k][c] for c, s in enumerate(self.buf.rig.cameras)]
@@ -260,7 +260,7 @@ class Mapper:
         views = self.views(k)
         colour, out = self.render(views)
         t1 = time.perf_counter()
-        targets = self.loss.targets(k, buf.images[k], buf.targets[k], self.sky.get(k))
+        targets = self.loss.targets(k, buf.images[k], buf.targets[k], self.sky.get(k))  # the stored list: its identity keys the cache
         res = self.loss(colour, out.depth, targets, buf.exposure[k], cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal)
         t2 = time.perf_counter()
         params = {"means": g.means, "log_scales": g.log_scales, "quats": g.quats, "opacity_logits": g.opacity_logits, "colors": g.colors}

@@ -33,7 +33,7 @@ def photo_consistent_targets(buf, stereo_pairs, keyframes, radius: int, min_view
 
     def grey_of(k, c):
         if (k, c) not in greys:
-            greys[(k, c)] = grey(buf.images[k][c], 1)
+            greys[(k, c)] = grey(buf.image(k, c), 1)
         return greys[(k, c)]
 
     todo = sorted(k for k in keyframes if k in buf.targets)
@@ -53,7 +53,7 @@ def photo_consistent_targets(buf, stereo_pairs, keyframes, radius: int, min_view
         for c in range(len(rig)):
             views, T_src_ref = views_of(k, c)
             depth = np.asarray(buf.targets[k][c], np.float32)
-            targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, ref_colour=buf.images[k][c], device=buf.device))
+            targets.append(propagate_depth(grey_of(k, c), rays[c], depth, [grey_of(*v) for v in views], [cams[v[1]] for v in views], T_src_ref, ref_colour=buf.image(k, c), device=buf.device))
         new[k] = targets
         if progress is not None:
             progress("photo depth", n + 1, len(todo))

@@ -83,7 +83,7 @@ def keyframe_views(slam):
         for c, spec in enumerate(buf.rig.cameras):
             a, b = np.exp(exposure[k, c, 0]), exposure[k, c, 1]
             crop = (c, slice(0, spec.height), slice(0, spec.width))
-            yield k, c, np.clip(a * col[crop] + b, 0, 1), med[crop], dep[crop], alpha[crop], level[crop], buf.images[k][c], buf.frame_index[k]
+            yield k, c, np.clip(a * col[crop] + b, 0, 1), med[crop], dep[crop], alpha[crop], level[crop], buf.image(k, c), buf.frame_index[k]
 
 
 MEASURED, MIXED, GUESSED = 255, 128, 0  # the confidence PNGs' levels

@@ -30,6 +30,7 @@ from ..mapping.mapper import Mapper
 from ..mapping.refine import joint_refinement
 from .checkpoint import load_checkpoint, save_checkpoint
 from .config import RunConfig
+from .memory import release_freed_memory
 from .offline import photo_consistent_targets
 from .tracker import Tracker
 
@@ -118,6 +119,7 @@ class SLAM:
             window = sliding_window(len(self.buf), self.cfg.tracking.window)
             if self.buf.targets:
                 self.mapper.optimize(mcfg.iterations_per_keyframe, keyframes=[w for w in window if w in self.buf.targets])
+            release_freed_memory()  # this keyframe's temporaries: the heap would keep them (.memory)
             t2 = time.perf_counter()
             self.seconds["tracking"] += t1 - t0
             self.seconds["mapping"] += t2 - t1
@@ -145,15 +147,19 @@ class SLAM:
         if rc.global_ba_iterations and len(self.buf) > 1:
             self.progress("global BA", 0, 1, force=True)
             self.mapper.follow(tracker.global_ba(rc.global_ba_iterations, rc.global_ba_radius), self.seq.rig)
+            release_freed_memory()
             self.seconds["global_ba"] = time.perf_counter() - t0
             self.progress("global BA", 1, 1, force=True)
             if rc.photo_depth_radius > 0 and not tracker.exact_depth:
                 t1 = time.perf_counter()
                 self.mapper.replace_targets(photo_consistent_targets(self.buf, tracker.stereo.pairs, range(len(self.buf)), rc.photo_depth_radius, rc.photo_depth_min_views, self.progress))
+                release_freed_memory()
                 self.seconds["photo_depth"] = time.perf_counter() - t1
         if rc.iterations:
             def report(it, r):
                 self.progress("refining", it + 1, rc.iterations, f"psnr {r.psnr:.1f} dB")
+                if (it + 1) % 30 == 0:
+                    release_freed_memory()
 
             joint_refinement(self.mapper, rc.iterations, poses=rc.poses, exposure=rc.exposure, progress=report)
             self.progress.done()

@@ -61,10 +61,10 @@ def test_dis_edge_and_its_reverse_share_two_dis_runs(synthetic_seq):
     t, w = dis.correspondences(P.buf, np.array(pairs, np.int32))
     assert len(calls) == len(pairs)  # two DIS runs per edge pair, not per edge
     for e, (i, ci, j, cj, _kind) in enumerate(pairs):
-        alone = grid_targets(P.buf, ci, cj, *DISFlow().flow(P.buf.images[i][ci], P.buf.images[j][cj]))
+        alone = grid_targets(P.buf, ci, cj, *DISFlow().flow(P.buf.image(i, ci), P.buf.image(j, cj)))
         uv = grid_pixels(P.buf.rig.cameras[ci], P.buf.stride)
         gh, gw = uv.shape[:2]
-        alone[1][:gh, :gw] *= textured(P.buf.images[i][ci], uv) & textured(P.buf.images[j][cj], from_reduced(alone[0][:gh, :gw], P.buf.stride))
+        alone[1][:gh, :gw] *= textured(P.buf.image(i, ci), uv) & textured(P.buf.image(j, cj), from_reduced(alone[0][:gh, :gw], P.buf.stride))
         np.testing.assert_allclose(t[e], alone[0], atol=1e-5)
         np.testing.assert_allclose(w[e], alone[1], atol=1e-5)
 
@@ -77,7 +77,7 @@ def test_flat_patches_give_no_correspondence(synthetic_seq):
     P = Problem(synthetic_seq, [0, 1], cross_view=False, radius=1)
     h = P.buf.rig.cameras[0].height
     for k in (0, 1):  # the top third of camera 0 overexposed in both keyframes
-        img = P.buf.images[k][0].copy()
+        img = P.buf.image(k, 0).copy()
         img[: h // 3] = 1.0
         P.buf.images[k] = [img] + list(P.buf.images[k][1:])
     edges = np.array([[0, 0, 1, 0, TEMPORAL], [1, 0, 0, 0, TEMPORAL]], np.int32)
@@ -551,3 +551,24 @@ def test_keyframe_buffer_grows_with_its_keyframes(synthetic_seq):
         np.testing.assert_allclose(buf.prior_conf.numpy()[k], conf, rtol=1e-6)
         assert (buf.scales.numpy()[k] == 1.0 + k).all() and (buf.exposure.numpy()[k] == k).all()
     assert (buf.prior_conf.numpy()[5:] == 1).all() and (buf.scales.numpy()[5:] == 1).all() and (buf.disp.numpy()[5:] == 0).all()
+
+
+def test_keyframe_buffer_keeps_8_bit_images_compact():
+    """Images read from 8-bit files (every value n / 255) are kept as uint8, a quarter of the
+    memory, and read back as the same float32 bit for bit; any other image (resampled, edited,
+    NaN) is kept exactly as given."""
+    from mcgs_warp.buffer import compact_image, float_image
+
+    rng = np.random.default_rng(0)
+    eight_bit = rng.integers(0, 256, (6, 7, 3), dtype=np.uint8).astype(np.float32) / 255.0
+    stored = compact_image(eight_bit)
+    assert stored.dtype == np.uint8 and stored.nbytes * 4 == eight_bit.nbytes
+    assert float_image(stored).dtype == np.float32 and np.array_equal(float_image(stored).view(np.uint32), eight_bit.view(np.uint32))
+    resampled = eight_bit.copy()
+    resampled[2, 3, 1] += 0.5 / 255.0  # between two 8-bit levels
+    with_nan = eight_bit.copy()
+    with_nan[0, 0, 0] = np.nan
+    for image in (resampled, with_nan, rng.uniform(0, 1, (4, 5, 3)).astype(np.float32)):
+        kept = compact_image(image)
+        assert kept.dtype == np.float32 and np.array_equal(kept, image, equal_nan=True)
+    assert compact_image(None) is None and float_image(None) is None

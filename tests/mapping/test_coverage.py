@@ -120,7 +120,7 @@ def test_sky_term_keeps_gaussians_out_of_the_sky(mapping_seq):
             for c, spec in enumerate(m.buf.rig.cameras):
                 top = np.zeros((spec.height, spec.width), bool)
                 top[: spec.height // 4] = True
-                images.append(np.where(top[..., None], np.float32(0.9), m.buf.images[k][c]).astype(np.float32))
+                images.append(np.where(top[..., None], np.float32(0.9), m.buf.image(k, c)).astype(np.float32))
                 depths.append(np.where(top, 6.0, mapping_seq[f].depths[c]).astype(np.float32))
                 top_k.append(top)
             m.buf.images[k] = images
@@ -150,7 +150,7 @@ def test_sky_masks_survive_a_checkpoint(mapping_seq):
 
     m = mapper()
     for k, f in enumerate(KEYFRAMES[:2]):
-        m.buf.images[k] = [np.where(np.arange(s.height)[:, None, None] < s.height // 3, np.float32(0.95), img) for img, s in zip(m.buf.images[k], m.buf.rig.cameras)]
+        m.buf.images[k] = [np.where(np.arange(s.height)[:, None, None] < s.height // 3, np.float32(0.95), img) for img, s in zip(m.buf.keyframe_images(k), m.buf.rig.cameras)]
         m.add_keyframe(k, mapping_seq[f].depths)
     assert any(mask.any() for mask in m.sky[1])
     m.optimize(2)

@@ -144,7 +144,13 @@ def test_ssim_kernel_matches_eval_metrics(problem):
 
 
 def test_targets_are_cached_per_keyframe_and_remade_when_replaced(problem):
-    loss = MappingLoss(problem.cams, wp.get_device(), cache_size=2)
+    """Targets stay on the device per keyframe (the same object while its host arrays are the
+    same), are remade when they are replaced, and the least recently used keyframe leaves once
+    the byte budget is spent (here: two keyframes)."""
+    one = MappingLoss(problem.cams, wp.get_device()).keyframe_bytes
+    assert MappingLoss(problem.cams, wp.get_device(), cache_bytes=5 * one + one // 2).cache_size == 5
+    loss = MappingLoss(problem.cams, wp.get_device(), cache_bytes=2 * one)
+    assert loss.cache_size == 2
     a = loss.targets(0, problem.images, problem.depths)
     assert loss.targets(0, problem.images, problem.depths) is a
     new_images = [img.copy() for img in problem.images]

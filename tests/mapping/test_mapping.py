@@ -45,7 +45,7 @@ def test_step_matches_the_host_loss(fitted, mapping_seq):
     sizes = [(s.height, s.width) for s in m.buf.rig.cameras]
     rays = [m.full_rays(c) for c in range(len(sizes))]
     total, _, _, grad_exposure, psnr = keyframe_loss(
-        out.color.numpy(), out.depth.numpy(), sizes, m.buf.images[1], m.buf.targets[1], rays, exposure.astype(np.float64), cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal
+        out.color.numpy(), out.depth.numpy(), sizes, m.buf.keyframe_images(1), m.buf.targets[1], rays, exposure.astype(np.float64), cfg.lambda_ssim, cfg.lambda_depth, cfg.lambda_normal
     )
     m.optimize_exposure = True
     r = m.step(1)
@@ -140,7 +140,7 @@ def test_exposure_refinement_recovers_gain_and_bias(fitted, mapping_seq):
     rng = np.random.default_rng(0)
     truth = np.stack([rng.uniform(0.8, 1.2, (4, 3)), rng.uniform(-0.05, 0.05, (4, 3))], -1)
     for k in range(4):
-        m.buf.images[k] = [np.clip(truth[k, c, 0] * img + truth[k, c, 1], 0, 1) for c, img in enumerate(m.buf.images[k])]
+        m.buf.images[k] = [np.clip(truth[k, c, 0] * img + truth[k, c, 1], 0, 1) for c, img in enumerate(m.buf.keyframe_images(k))]
     joint_refinement(m, 160, poses=False, exposure=True)
     est = exposure_gains(m)
     assert np.abs(est[..., 0] - truth[..., 0]).max() < 0.03
@@ -282,7 +282,7 @@ def test_background_learns_a_sky_that_no_gaussian_covers(mapping_seq):
                 R = (poses[k] @ spec.T_b_c)[:3, :3]
                 d = m.full_rays(c) @ R.T
                 d /= np.linalg.norm(d, axis=-1, keepdims=True)
-                images.append(np.where(top[..., None], sky(d), m.buf.images[k][c]).astype(np.float32))
+                images.append(np.where(top[..., None], sky(d), m.buf.image(k, c)).astype(np.float32))
                 depths.append(np.where(top, 0.0, mapping_seq[f].depths[c]).astype(np.float32))
                 masks.append(top)
             m.buf.images[k] = images
@@ -294,7 +294,7 @@ def test_background_learns_a_sky_that_no_gaussian_covers(mapping_seq):
             col = colour.numpy()
             for c, spec in enumerate(m.buf.rig.cameras):
                 top = masks[k * len(m.buf.rig.cameras) + c]
-                errs.append(((col[c, : spec.height, : spec.width] - m.buf.images[k][c]) ** 2)[top].mean())
+                errs.append(((col[c, : spec.height, : spec.width] - m.buf.image(k, c)) ** 2)[top].mean())
         psnrs[background] = -10 * np.log10(np.mean(errs))
     assert psnrs[True] > 22.0 and psnrs[True] > psnrs[False] + 12.0, psnrs  # 24.4 vs 6.5 dB
 

@@ -21,7 +21,7 @@ def test_nan_image_is_rejected(tmp_path, caplog):
     for k, f in enumerate([0, 2]):
         m.add_keyframe(k, seq[f].depths)
     before = m.map.to_numpy()
-    P.buf.images[1][0] = P.buf.images[1][0].copy()
+    P.buf.images[1][0] = P.buf.image(1, 0).copy()
     P.buf.images[1][0][10:20, 10:20] = np.nan  # a corrupted image
     with caplog.at_level("WARNING"):
         r = m.step(1)
