@@ -28,7 +28,7 @@ class ViewKeypoints:
     uv: np.ndarray  # [M,2] float64 px
     rays: np.ndarray  # [M,3] float64 unit-depth rays (point = ray x depth), camera frame
     bearings: np.ndarray  # [M,3] float64 unit vectors, camera frame
-    desc: np.ndarray  # [M,128] float32 SIFT descriptors
+    desc: np.ndarray  # [M,128] SIFT descriptors: uint8 (OpenCV's float32 values are whole numbers 0-255; a quarter of the memory a kept keyframe holds), float32 for matching (:func:`descriptors`)
     points: np.ndarray  # [M,3] float64 camera-frame points (m), NaN where the depth is unknown
     #: stereo matches with the rig's other cameras at the same time: camera -> (indices here, indices there)
     partners: dict = field(default_factory=dict)
@@ -48,11 +48,29 @@ def to_grey8(image: np.ndarray) -> np.ndarray:
     return np.clip(g * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
+def compact_descriptors(desc: np.ndarray | None) -> np.ndarray:
+    """SIFT descriptors [M,128] as a view keeps them: uint8 where every value is a whole number
+    in 0-255 (OpenCV's SIFT gives such float32s), else float32."""
+    if desc is None:
+        return np.zeros((0, 128), np.uint8)
+    desc = np.asarray(desc)
+    if desc.dtype == np.uint8:
+        return desc
+    n = np.clip(desc, 0, 255).astype(np.uint8)
+    return n if np.array_equal(n, desc) else desc.astype(np.float32)
+
+
+def descriptors(desc: np.ndarray) -> np.ndarray:
+    """Kept descriptors (:func:`compact_descriptors`) as the float32 the matchers take."""
+    return np.asarray(desc, np.float32)
+
+
 def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
     """Pairs [P,2] (index in a, index in b) whose nearest neighbours agree both ways and pass
     Lowe's ratio test (nearest < ``ratio`` x second nearest) in both directions."""
     import cv2
 
+    desc_a, desc_b = descriptors(desc_a), descriptors(desc_b)
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.int64)
     bf = cv2.BFMatcher(cv2.NORM_L2)
@@ -75,6 +93,7 @@ def masked_matches(desc_a: np.ndarray, desc_b: np.ndarray, allowed: np.ndarray, 
     there, mutual, and below ``ratio`` times the second best there."""
     if not allowed.any():
         return np.zeros((0, 2), np.int64)
+    desc_a, desc_b = descriptors(desc_a), descriptors(desc_b)
     d2 = (desc_a**2).sum(1)[:, None] + (desc_b**2).sum(1)[None] - 2.0 * desc_a @ desc_b.T
     d2 = np.where(allowed, np.maximum(d2, 0.0), np.inf)
     ia = np.arange(len(desc_a))
@@ -158,7 +177,7 @@ class KeypointDetector:
         for c, img in enumerate(self._grey):
             kps, desc = sift.detectAndCompute(img, None)
             uv = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
-            desc = np.zeros((0, 128), np.float32) if desc is None else desc.astype(np.float32)
+            desc = compact_descriptors(desc)
             rays = self._unproject(self._cams[c], uv) if len(uv) else np.zeros((0, 3))
             pts = np.full((len(uv), 3), np.nan)
             if depths is not None and depths[c] is not None and len(uv):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from mcgs_warp.ba.edges import camera_overlap, unproject_pixels
-from mcgs_warp.frontend.keypoints import KeypointDetector, mutual_matches, triangulate
+from mcgs_warp.frontend.keypoints import KeypointDetector, compact_descriptors, masked_matches, mutual_matches, triangulate
 from mcgs_warp.frontend.pnp import RigObservations, RigPnP
-from mcgs_warp.geometry import invert, pose_distance, se3_exp, yaw_pitch_roll
+from mcgs_warp.geometry import pose_distance, se3_exp, yaw_pitch_roll
 from mcgs_warp.rig import CameraSpec, Rig
 from mcgs_warp.system.config import packaged_config
 from mcgs_warp.rig import load_rig
@@ -116,6 +116,34 @@ def test_mutual_matches_pair_the_same_descriptors():
     m = mutual_matches(a, b)
     assert len(m) == 40
     np.testing.assert_array_equal(perm[m[:, 1]], m[:, 0])
+
+
+def test_views_keep_sift_descriptors_as_uint8_and_match_as_before(synthetic_seq):
+    """A kept view's descriptors are uint8 (a quarter of the memory every keyframe's views hold) and the
+    same values OpenCV's SIFT gave as float32, so matching them gives the same pairs; descriptors
+    that are not whole numbers in 0-255 stay float32."""
+    import cv2
+
+    from mcgs_warp.frontend.keypoints import to_grey8
+
+    rig = synthetic_seq.rig
+    frame = synthetic_seq[0]
+    views = KeypointDetector(rig, []).detect(frame.images)
+    assert all(v.desc.dtype == np.uint8 and v.desc.shape == (len(v), 128) for v in views)
+    sift = cv2.SIFT_create(nfeatures=1000, contrastThreshold=0.02)
+    _, raw = sift.detectAndCompute(to_grey8(frame.images[0]), None)
+    assert raw.dtype == np.float32 and len(raw) == len(views[0]) >= 50
+    np.testing.assert_array_equal(views[0].desc.astype(np.float32), raw)
+    a, b = views[0].desc, views[1].desc
+    np.testing.assert_array_equal(mutual_matches(a, b), mutual_matches(a.astype(np.float32), b.astype(np.float32)))
+    band = np.random.default_rng(0).random((len(a), len(b))) < 0.3
+    m = masked_matches(a, b, band)  # squares of uint8 would wrap: the matcher must take floats
+    np.testing.assert_array_equal(m, masked_matches(a.astype(np.float32), b.astype(np.float32), band))
+    assert len(m) > 0
+    frac = raw * 0.5 + 0.25
+    assert compact_descriptors(frac).dtype == np.float32 and np.array_equal(compact_descriptors(frac), frac)
+    assert compact_descriptors(raw + 256.0).dtype == np.float32  # whole numbers beyond 255
+    assert compact_descriptors(None).shape == (0, 128)
 
 
 def test_rig_stereo_keypoint_depth_matches_exact_depth(synthetic_seq):

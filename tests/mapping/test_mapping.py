@@ -210,7 +210,7 @@ def test_follow_depth_moves_each_gaussian_along_its_camera_ray(mapping_seq):
     buf = KeyframeBuffer(rig, stride=8, capacity=2)
     rng = np.random.default_rng(0)
     T_w_b = mapping_seq.groundtruth.poses[3]
-    C, h, w = len(rig), buf.h, buf.w
+    h, w = buf.h, buf.w
     v, u = np.mgrid[0:h, 0:w]
     ratio = np.stack([1.0 + 0.3 * u / (w - 1), np.full((h, w), 0.8), 1.1 - 0.2 * v / (h - 1)]).astype(np.float32)
     pts = []
