@@ -31,16 +31,15 @@ rest of the problem is still solved.
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 import warp as wp
 
 from ..buffer import KeyframeBuffer
 from ..kernels.camera import FAR
 from ..kernels.launch import band_workers, run_row_bands
+from .lm import Damping, damped_step
 from .variance import ClassNoise, class_scales, dense_noise, disagreement_factor
 
 
@@ -187,7 +186,7 @@ class MCBA:
         noises = [f.noise(window_poses(win.poses.numpy())) for f in extra]
         scales = class_scales(self.dense_variance(), noises) if cfg.variance_components else [1.0] * len(extra)
         stats.scales = scales
-        lam = cfg.lm_lambda
+        damping = Damping(cfg.lm_lambda)
         dense = win.cost(win.disp, win.poses)
         current = dense + sum(s * f.cost(window_poses(win.poses.numpy())) for s, f in zip(scales, extra))
         stats.cost.append(current)
@@ -201,11 +200,11 @@ class MCBA:
             stats.keyframes = keyframes
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0
-            S, rhs = win.reduce(lam)  # Schur complement with the damped depth block
+            S, rhs = win.reduce(damping.lam)  # Schur complement with the damped depth block
             S_dense, rhs_dense = S, rhs
             S_abs, rhs_abs = np.zeros_like(S), np.zeros_like(rhs)  # the classes in absolute units
             for sc, f, nz in zip(scales, extra, noises):
-                S_f, rhs_f = f.reduced_terms(window_poses(win.poses.numpy()), lam)
+                S_f, rhs_f = f.reduced_terms(window_poses(win.poses.numpy()), damping.lam)
                 if isinstance(nz, float):
                     S_abs, rhs_abs = S_abs + nz * S_f, rhs_abs + nz * rhs_f
                 S, rhs = S + sc * S_f, rhs + sc * rhs_f
@@ -218,21 +217,11 @@ class MCBA:
             stats.seconds_reduce += t2 - t1
 
             while True:
-                dxi = np.zeros(6 * win.n)
-                if len(free_idx):
-                    Sf = S[np.ix_(free_idx, free_idx)]
-                    Sf = Sf + lam * np.diag(np.diag(Sf)) + 1e-9 * np.eye(len(free_idx))
-                    try:
-                        # an ill-conditioned system (SciPy's LinAlgWarning) is no step: more damping
-                        with warnings.catch_warnings():
-                            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
-                            dxi[free_idx] = scipy.linalg.solve(Sf, rhs[free_idx], assume_a="sym")
-                    except (np.linalg.LinAlgError, ValueError, scipy.linalg.LinAlgWarning):
-                        dxi[:] = np.nan
-                if not (np.all(np.isfinite(dxi)) and win.candidate(dxi, lam)):
-                    lam *= 10.0
+                dxi = damped_step(S, rhs, free_idx, damping.lam)
+                if not (np.all(np.isfinite(dxi)) and win.candidate(dxi, damping.lam)):
+                    damping.failed()
                     stats.rejected += 1
-                    if lam > 1e8:
+                    if damping.exhausted:
                         break
                     continue
                 new_dense = new_cost = win.cost(win.disp_c, win.poses_c)
@@ -247,14 +236,14 @@ class MCBA:
                     stats.cost.append(current)
                     stats.dense_cost.append(new_dense)
                     stats.accepted += 1
-                    lam = max(lam / 3.0, 1e-9)
+                    damping.accepted()
                     break
                 stats.rejected += 1
-                lam *= 4.0
-                if lam > 1e8:
+                damping.rejected()
+                if damping.exhausted:
                     break
             stats.seconds_solve += time.perf_counter() - t2
-            if lam > 1e8:
+            if damping.exhausted:
                 break
         if stats.accepted:
             win.store()

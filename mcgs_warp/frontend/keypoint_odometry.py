@@ -6,8 +6,8 @@ frame's keypoints (:mod:`.keypoints`) are matched against the last ``frames`` fr
 placed by the multi-camera PnP (:mod:`.pnp`, constant velocity as a hypothesis and the
 fallback), their PnP inliers join keypoint tracks (:class:`~mcgs_warp.ba.keypoint_tracks.KeypointTracks`),
 and a sliding-window bundle adjustment over the last ``window`` frames (the tracks' reprojection
-factors, :class:`~mcgs_warp.ba.keypoint_factors.KeypointFactors`, Levenberg-Marquardt, the
-oldest pose held) refines poses and points. A keypoint's 3D point comes from what the rig
+factors, :class:`~mcgs_warp.ba.keypoint_factors.KeypointFactors`, Levenberg-Marquardt as MCBA's,
+:mod:`mcgs_warp.ba.lm`, the oldest pose held) refines poses and points. A keypoint's 3D point comes from what the rig
 measures (stereo between overlapping cameras, sensor depth), from its track as solved, or
 from the caller's ``depth_at`` (the SLAM's solved keyframe depth: a monocular rig).
 
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ba.keypoint_factors import KeypointFactors
+from ..ba.lm import Damping, damped_step
 from ..ba.keypoint_tracks import KeypointTracks
 from ..kernels.camera import FAR
 from ..geometry import adjoint, invert, se3_exp
@@ -106,29 +107,26 @@ class KeypointOdometry:
         f = KeypointFactors(prob, self.rig, cfg.stride, cfg.huber_px / cfg.stride, 1.0 / FAR)
         Pw = np.stack([poses_of[k] for k in window])
         free = np.arange(6, 6 * n)
-        lam, cur = 1e-4, f.cost(Pw)
+        damping, cur = Damping(1e-4), f.cost(Pw)
         for _ in range(cfg.iterations):
-            S, rhs = f.reduced_terms(Pw, lam)
+            S, rhs = f.reduced_terms(Pw, damping.lam)
             while True:
-                Sf = S[np.ix_(free, free)]
-                Sf = Sf + lam * np.diag(np.diag(Sf)) + 1e-9 * np.eye(len(free))
-                dx = np.zeros(6 * n)
-                try:
-                    dx[free] = np.linalg.solve(Sf, rhs[free])
-                except np.linalg.LinAlgError:
-                    dx[:] = np.nan
-                if np.all(np.isfinite(dx)):
+                dx = damped_step(S, rhs, free, damping.lam)
+                if not np.all(np.isfinite(dx)):
+                    damping.failed()
+                else:
                     f.candidate(dx)
                     Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
                     c = f.cost(Pc, f.disp_c)
                     if c <= cur:
-                        Pw, cur, lam = Pc, c, max(lam / 3.0, 1e-9)
+                        Pw, cur = Pc, c
+                        damping.accepted()
                         f.accept()
                         break
-                lam *= 4.0
-                if lam > 1e8:
+                    damping.rejected()
+                if damping.exhausted:
                     break
-            if lam > 1e8:
+            if damping.exhausted:
                 break
         for s, k in enumerate(window):
             poses_of[k] = Pw[s]
