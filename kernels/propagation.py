@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .camera import FAR, NEAR, Camera, camera_in_domain, camera_project
+from .camera import EQUIRECTANGULAR, FAR, NEAR, Camera, camera_in_domain, camera_project
 from .sweep import NO_COST, nearest_pixel, sample_bilinear, zncc_cost, zncc_cost_kernel
 
 wp.set_module_options({"enable_backward": False})
@@ -202,6 +202,12 @@ def support_weights_kernel(
     moments[y, x] = wp.vec3(t, sa, saa)
 
 
+@wp.func
+def lagrange3(t: float):
+    """Quadratic Lagrange weights of the nodes at -1, 0, 1 for ``t`` in [-1, 1]."""
+    return wp.vec3(0.5 * t * (t - 1.0), 1.0 - t * t, 0.5 * t * (t + 1.0))
+
+
 @wp.kernel
 def adaptive_window_kernel(
     ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
@@ -222,7 +228,8 @@ def adaptive_window_kernel(
     a2: wp.array(dtype=float, ndim=3),  # [K,H,W] second lowest
 ):
     """``1 - ZNCC`` of a picked candidate with adaptive support weights: the whole window at
-    the candidate's depth, each pixel weighted as :func:`support_weights_kernel` says;
+    the candidate's depth (placed in the source through 3x3 projected nodes, a biquadratic
+    map: 9 projections instead of (2r+1)^2), each pixel weighted as :func:`support_weights_kernel` says;
     ``NO_COST`` once samples outside the source carry more than 0.1 % of the window's weight
     (the moments then count the valid samples only)."""
     j, r, x = wp.tid()
@@ -234,6 +241,24 @@ def adaptive_window_kernel(
     z = candidate_depth(depth, cand, y, x)
     cam = src_cams[s]
     T = T_src_ref[s]
+    # Off the equirectangular model and the image's rim the window's samples follow the
+    # biquadratic map through 3x3 exactly projected nodes (the window's corners, edge
+    # midpoints and centre; rays at one depth): 9 projections per window, not (2r+1)^2.
+    H = ref_rays.shape[0]
+    W = ref_rays.shape[1]
+    nodes = cam.model != EQUIRECTANGULAR and y >= radius and y + radius < H and x >= radius and x + radius < W
+    Pu = wp.mat33(0.0)
+    Pv = wp.mat33(0.0)
+    if nodes:
+        for ny in range(3):
+            for nx in range(3):
+                X = wp.transform_point(T, ref_rays[y + (ny - 1) * radius, x + (nx - 1) * radius] * z)
+                if camera_in_domain(cam, X, NEAR, FAR):
+                    uv = camera_project(cam, X)
+                    Pu[ny, nx] = uv[0]
+                    Pv[ny, nx] = uv[1]
+                else:
+                    nodes = False  # a node leaves the model's domain: every sample projected
     m = moments[y, x]
     t = m[0]
     n = t  # weight of the valid samples: the window's less what falls outside the source
@@ -245,16 +270,27 @@ def adaptive_window_kernel(
     o = int(0)
     for dy in range(-radius, radius + 1):
         yy = y + dy
+        ly = lagrange3(float(dy) / float(radius))
+        qu = wp.vec3(0.0)
+        qv = wp.vec3(0.0)
+        if nodes:  # the row's nodes: Lagrange weights over the node rows
+            for nx in range(3):
+                qu[nx] = ly[0] * Pu[0, nx] + ly[1] * Pu[1, nx] + ly[2] * Pu[2, nx]
+                qv[nx] = ly[0] * Pv[0, nx] + ly[1] * Pv[1, nx] + ly[2] * Pv[2, nx]
         for dx in range(-radius, radius + 1):
             xx = x + dx
             w = weights[y, x, o]
             o += 1
             if w > 0.0 and n >= 0.999 * t:
-                X = wp.transform_point(T, ref_rays[yy, xx] * z)
                 b = float(-1.0)
-                if camera_in_domain(cam, X, NEAR, FAR):
-                    uv = camera_project(cam, X)
-                    b = sample_bilinear(src, s, uv[0], uv[1], cam.width, cam.height)
+                if nodes:
+                    lx = lagrange3(float(dx) / float(radius))
+                    b = sample_bilinear(src, s, wp.dot(lx, qu), wp.dot(lx, qv), cam.width, cam.height)
+                else:
+                    X = wp.transform_point(T, ref_rays[yy, xx] * z)
+                    if camera_in_domain(cam, X, NEAR, FAR):
+                        uv = camera_project(cam, X)
+                        b = sample_bilinear(src, s, uv[0], uv[1], cam.width, cam.height)
                 a = ref[yy, xx]
                 if b >= 0.0:
                     sb += w * b
