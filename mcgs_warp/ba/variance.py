@@ -72,32 +72,39 @@ def robust_variance(z: np.ndarray, unknowns: float = 0.0) -> ClassNoise | None:
     return ClassNoise(n, float(red), s * s * n / red)
 
 
-def field_correlation(res: np.ndarray, valid: np.ndarray) -> float:
+def field_correlation(res: np.ndarray, valid: np.ndarray, chunk: int = 64) -> float:
     """Lag-1 correlation of a residual field ``res`` [E,h,w,2] (``valid`` [E,h,w] bool) along
     grid rows and columns, pooled over edges and both components, on pairs of valid
     neighbours; residuals beyond 3 robust sigmas are clipped (one outlier makes no
-    correlation). 0 when too few pairs."""
-    res = np.asarray(res, np.float64)
+    correlation). 0 when too few pairs. Sums are gathered ``chunk`` edges at a time, so a
+    global solve's thousands of edges need no float64 copy of the whole field."""
+    res = np.asarray(res)
     valid = np.asarray(valid, bool)
-    z = res[valid]
+    z = res[valid].astype(np.float64)
     if len(z) < 10:
         return 0.0
     s = MAD_TO_SIGMA * float(np.median(np.abs(z))) + 1e-30
-    r = np.clip(res, -3 * s, 3 * s)
-    r = np.where(valid[..., None], r, 0.0)
+    del z
+    # per direction (along rows, along columns): pairs, then per component sums of x, y, xy, xx, yy
+    count = np.zeros(2, np.int64)
+    sums = np.zeros((2, 5, res.shape[-1]))
+    for e0 in range(0, len(res), chunk):
+        r = np.clip(res[e0 : e0 + chunk].astype(np.float64), -3 * s, 3 * s)
+        v = valid[e0 : e0 + chunk]
+        for d, (a, b, va, vb) in enumerate(((r[:, :, 1:], r[:, :, :-1], v[:, :, 1:], v[:, :, :-1]), (r[:, 1:], r[:, :-1], v[:, 1:], v[:, :-1]))):
+            m = va & vb
+            x, y = a[m], b[m]
+            count[d] += len(x)
+            sums[d] += np.stack([x.sum(0), y.sum(0), (x * y).sum(0), (x * x).sum(0), (y * y).sum(0)])
     num = den_a = den_b = 0.0
-    count = 0
-    for a, b, va, vb in ((r[:, :, 1:], r[:, :, :-1], valid[:, :, 1:], valid[:, :, :-1]), (r[:, 1:], r[:, :-1], valid[:, 1:], valid[:, :-1])):
-        m = va & vb
-        if not m.any():
+    for d in range(2):
+        if count[d] == 0:
             continue
-        x, y = a[m], b[m]
-        x, y = x - x.mean(0), y - y.mean(0)
-        num += float((x * y).sum())
-        den_a += float((x * x).sum())
-        den_b += float((y * y).sum())
-        count += int(m.sum())
-    if count < 10 or den_a <= 0 or den_b <= 0:
+        sx, sy, sxy, sxx, syy = sums[d]
+        num += float((sxy - sx * sy / count[d]).sum())  # about each component's mean
+        den_a += float((sxx - sx * sx / count[d]).sum())
+        den_b += float((syy - sy * sy / count[d]).sum())
+    if count.sum() < 10 or den_a <= 0 or den_b <= 0:
         return 0.0
     return float(num / np.sqrt(den_a * den_b))
 

@@ -48,6 +48,29 @@ def test_field_correlation_measures_the_lag_one_correlation():
     assert correlation_factor(0.0) == 1.0 and abs(correlation_factor(0.6) - 16.0) < 1e-9 and correlation_factor(-0.3) == 1.0
 
 
+def test_field_correlation_in_edge_chunks_is_the_pooled_correlation():
+    """Summed a few edges at a time (bounded memory for a global solve's thousands of edges),
+    the correlation is the one of all valid neighbour pairs pooled at once (each component
+    about its own mean, outliers clipped at 3 robust sigmas), whatever the chunk size."""
+    rng = np.random.default_rng(3)
+    res = _ar1_field(rng, 0.4, (7, 20, 30)) * rng.uniform(0.5, 2.0, size=(7, 1, 1, 1))
+    res[0, 3, 4] = 40.0  # an outlier, clipped
+    valid = rng.uniform(size=(7, 20, 30)) > 0.3
+    z = res[valid]
+    sig = 1.4826 * np.median(np.abs(z))
+    r = np.clip(res, -3 * sig, 3 * sig)
+    xs, ys = [], []
+    for a, b, va, vb in ((r[:, :, 1:], r[:, :, :-1], valid[:, :, 1:], valid[:, :, :-1]), (r[:, 1:], r[:, :-1], valid[:, 1:], valid[:, :-1])):
+        m = va & vb
+        xs.append(a[m] - a[m].mean(0))
+        ys.append(b[m] - b[m].mean(0))
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    want = (x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum())
+    for chunk in (1, 3, 64):
+        assert abs(field_correlation(res, valid, chunk=chunk) - want) < 1e-12, chunk
+    assert abs(field_correlation(res.astype(np.float32), valid) - want) < 1e-6  # MCBA's float32 field
+
+
 def test_dense_noise_counts_each_views_depths_and_its_correlation():
     """Two edges leave each of two views: one depth per source pixel and view, so 4 components
     per pixel and view over 1 unknown; a correlated field costs information."""
