@@ -30,7 +30,7 @@ from __future__ import annotations
 import warp as wp
 
 from .camera import FAR, NEAR, Camera, camera_in_domain, camera_jacobian, camera_project, camera_unproject, mat23
-from .se3 import se3_retract, skew, vec6
+from .se3 import se3_adjoint, se3_retract, skew, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -149,7 +149,7 @@ def mcba_linearize_kernel(
     row0: int,  # first grid row of this launch (a band of rows: see mcgs_warp.kernels.launch)
     H: wp.array(dtype=mat66d, ndim=2),  # [E,3] out (accumulated, float64): H_ii, H_ij, H_jj
     g: wp.array(dtype=vec6d, ndim=2),  # [E,2] out (accumulated, float64): v_i, v_j
-    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2] out: E_i, E_j per pixel
+    Epix: wp.array(dtype=vec6, ndim=3),  # [E,h,w] out: E_j per pixel (E_i = -Ad^T E_j, edge_adjoint)
     C: wp.array(dtype=float, ndim=4),  # [K,C,h,w] out (accumulated)
     wdepth: wp.array(dtype=float, ndim=4),  # [K,C,h,w] out (accumulated)
     cost: wp.array(dtype=float),  # [E] out (accumulated robust cost)
@@ -215,8 +215,7 @@ def mcba_linearize_kernel(
     wp.atomic_add(H, e, 2, mat66d(W * (JjT * Jj)))
     wp.atomic_add(g, e, 0, vec6d(W * (JiT * r)))
     wp.atomic_add(g, e, 1, vec6d(W * (JjT * r)))
-    Epix[e, y, x, 0] = W * (JiT * Jd)
-    Epix[e, y, x, 1] = W * (JjT * Jd)
+    Epix[e, y, x] = W * (JjT * Jd)  # W JiT Jd = -Ad^T (W JjT Jd): the edge's adjoint, not a second array
 
 
 @wp.func
@@ -297,21 +296,43 @@ def mcba_residual_kernel(
     residual[e, y, x] = wp.sqrt(wgt) * r
 
 
+@wp.func
+def edge_adjoint(T_w_bi: wp.transform, T_w_bj: wp.transform):
+    """Adjoint ``Ad = [[R, [t]x R], [0, R]]`` of ``T_bj_bi = (R, t)``: a residual's Jacobian
+    w.r.t. pose i is ``J_i = -J_j Ad`` (mcba_linearize_kernel's parametrization: ``X_bj = R
+    X_bi + t``, so ``A_j R [I, -[X_bi]x] = A_j [I, -[X_bj]x] Ad``), hence every pose-depth
+    coupling of pose i follows from pose j's: ``E_i = -Ad^T E_j``."""
+    return se3_adjoint(wp.transform_multiply(wp.transform_inverse(T_w_bj), T_w_bi))
+
+
+@wp.kernel
+def edge_adjoint_kernel(
+    poses: wp.array(dtype=wp.transform),  # [n] T_w_b, slot-indexed
+    edges: wp.array(dtype=wp.vec4i),  # [E] (slot i, ci, slot j, cj)
+    Ad: wp.array(dtype=mat66),  # [E] out: edge_adjoint of each edge
+):
+    e = wp.tid()
+    Ad[e] = edge_adjoint(poses[edges[e][0]], poses[edges[e][2]])
+
+
 # ---------------------------------------------------------------------------------------
 # Sparse Schur reduction (paper eq. 10) over a window of n keyframes held in slots 0..n-1.
 #
-# The depth variable of pixel p of view (i, ci) couples to pose i through every edge e
-# leaving (i, ci) (``E_{e,i}(p)``, Epix[e, y, x, 0]) and to pose j_e (``E_{e,j}(p)``,
-# Epix[e, y, x, 1]). With ``Q_p = 1 / (C_p (1 + lambda) + lambda DEPTH_DAMPING)`` (0 where C_p == 0) the
+# The depth variable of pixel p of view (i, ci) couples to pose j_e through every edge e
+# leaving (i, ci) (``E_{e,j}(p)``, Epix[e, y, x]) and to pose i by ``E_{e,i}(p) = -Ad_e^T
+# E_{e,j}(p)`` (:func:`edge_adjoint`: one 6x6 per edge, so only E_j is stored per pixel).
+# With ``Q_p = 1 / (C_p (1 + lambda) + lambda DEPTH_DAMPING)`` (0 where C_p == 0) the
 # reduced camera system ``S = B - sum_p G_p^T Q_p G_p`` needs, for every ordered pair of
 # pose edges (e1, e2) with the same source view, the four 6x6 blocks
 # ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for (a, b) in (i,i), (i,j2), (j1,i), (j1,j2)
-# (computed once per unordered pair, e1 <= e2: those of (e2, e1) are their transposes):
-# the work and memory grow with edge pairs x pixels, never with keyframes^2. The kernels
-# below compute them per (pair, image row) in float32 and add once per row into float64
-# blocks, then scatter the blocks (pairs x 4 x 36 numbers) and the per-edge pose blocks B
-# (also float64 sums) into S; only S
-# [6n,6n] and rhs [6n] go to the host for the pose solve.
+# (computed once per unordered pair, e1 <= e2: those of (e2, e1) are their transposes).
+# All four follow from ``M = sum_p Q_p E_{e1,j}(p) E_{e2,j}(p)^T`` = (j1,j2):
+# (i,i) = Ad1^T M Ad2, (i,j2) = -Ad1^T M, (j1,i) = -M Ad2. The work and memory grow with
+# edge pairs x pixels, never with keyframes^2. :func:`schur_pairs_kernel` sums M per
+# (pair, image row) in float32 and adds once per row into float64 blocks;
+# :func:`schur_pair_blocks_kernel` makes the other three (float64); then the blocks
+# (pairs x 4 x 36 numbers) and the per-edge pose blocks B (also float64 sums) are scattered
+# into S; only S [6n,6n] and rhs [6n] go to the host for the pose solve.
 # ---------------------------------------------------------------------------------------
 
 
@@ -400,15 +421,16 @@ def sum_float64_kernel(values: wp.array(dtype=float), total: wp.array(dtype=wp.f
 
 @wp.kernel
 def schur_pairs_kernel(
-    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2] pose-depth couplings E_i, E_j per pixel
+    Epix: wp.array(dtype=vec6, ndim=3),  # [E,h,w] pose-depth couplings E_j per pixel
     C: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth block (with prior), slot-indexed
     edges: wp.array(dtype=wp.vec4i),  # [E] (slot i, ci, slot j, cj)
     pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2): pose edges leaving the same view (i, ci)
     lam: float,  # Levenberg-Marquardt damping of the depth block
     p0: int,  # first pair of this launch (a band of pairs: see mcgs_warp.kernels.launch)
-    blocks: wp.array(dtype=mat66d, ndim=2),  # [P,4] out (accumulated, float64): (i,i), (i,j2), (j1,i), (j1,j2)
+    blocks: wp.array(dtype=mat66d, ndim=2),  # [P,4] out (accumulated, float64): block 3 = (j1,j2)
 ):
-    """Per pair and image row: ``sum_p Q_p E_{e1,a}(p) E_{e2,b}(p)^T`` for the four (a, b)."""
+    """Per pair and image row: ``M = sum_p Q_p E_{e1,j}(p) E_{e2,j}(p)^T`` into block 3;
+    :func:`schur_pair_blocks_kernel` derives the other three."""
     p, y = wp.tid()
     p = p + p0
     e1 = pairs[p][0]
@@ -416,30 +438,35 @@ def schur_pairs_kernel(
     edge = edges[e1]
     s = edge[0]
     c = edge[1]
-    M_ii = mat66()
-    M_ij = mat66()
-    M_ji = mat66()
-    M_jj = mat66()
+    M = mat66()
     for x in range(Epix.shape[2]):
         q = schur_depth_weight(C[s, c, y, x], lam)
         if q > 0.0:
-            a1 = q * Epix[e1, y, x, 0]
-            b1 = q * Epix[e1, y, x, 1]
-            a2 = Epix[e2, y, x, 0]
-            b2 = Epix[e2, y, x, 1]
-            M_ii = M_ii + wp.outer(a1, a2)
-            M_ij = M_ij + wp.outer(a1, b2)
-            M_ji = M_ji + wp.outer(b1, a2)
-            M_jj = M_jj + wp.outer(b1, b2)
-    wp.atomic_add(blocks, p, 0, mat66d(M_ii))
-    wp.atomic_add(blocks, p, 1, mat66d(M_ij))
-    wp.atomic_add(blocks, p, 2, mat66d(M_ji))
-    wp.atomic_add(blocks, p, 3, mat66d(M_jj))
+            M = M + wp.outer(q * Epix[e1, y, x], Epix[e2, y, x])
+    wp.atomic_add(blocks, p, 3, mat66d(M))
+
+
+@wp.kernel
+def schur_pair_blocks_kernel(
+    pairs: wp.array(dtype=wp.vec2i),  # [P] (e1, e2)
+    Ad: wp.array(dtype=mat66),  # [E] edge_adjoint per edge
+    blocks: wp.array(dtype=mat66d, ndim=2),  # [P,4] in: block 3 = M; out: (i,i), (i,j2), (j1,i)
+):
+    """``(i,i) = Ad1^T M Ad2``, ``(i,j2) = -Ad1^T M``, ``(j1,i) = -M Ad2`` (float64)."""
+    p = wp.tid()
+    M = blocks[p, 3]
+    A1t = wp.transpose(mat66d(Ad[pairs[p][0]]))
+    A2 = mat66d(Ad[pairs[p][1]])
+    A1tM = A1t * M
+    blocks[p, 0] = A1tM * A2
+    blocks[p, 1] = -A1tM
+    blocks[p, 2] = -(M * A2)
 
 
 @wp.kernel
 def schur_rhs_kernel(
-    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2]
+    Epix: wp.array(dtype=vec6, ndim=3),  # [E,h,w] E_j per pixel
+    Ad: wp.array(dtype=mat66),  # [E] edge_adjoint per edge
     C: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth block (with prior)
     wdepth: wp.array(dtype=float, ndim=4),  # [n,C,h,w] depth gradient (with prior)
     edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
@@ -448,21 +475,21 @@ def schur_rhs_kernel(
     k0: int,  # first pose edge of this launch
     out: wp.array(dtype=vec6d, ndim=2),  # [E,2] out (accumulated, float64): sum_p E_{e,i} Q w, sum_p E_{e,j} Q w
 ):
-    """Per pose edge and image row, the depth part of the reduced gradient ``E C^-1 w``."""
+    """Per pose edge and image row, the depth part of the reduced gradient ``E C^-1 w``
+    (pose i's part ``-Ad^T`` pose j's)."""
     k, y = wp.tid()
     k = k + k0
     e = pose_edges[k]
     s = edges[e][0]
     c = edges[e][1]
-    acc_i = vec6()
-    acc_j = vec6()
+    acc = vec6()
     for x in range(Epix.shape[2]):
         qw = schur_depth_weight(C[s, c, y, x], lam) * wdepth[s, c, y, x]
         if qw != 0.0:
-            acc_i = acc_i + qw * Epix[e, y, x, 0]
-            acc_j = acc_j + qw * Epix[e, y, x, 1]
-    wp.atomic_add(out, e, 0, vec6d(acc_i))
-    wp.atomic_add(out, e, 1, vec6d(acc_j))
+            acc = acc + qw * Epix[e, y, x]
+    acc_d = vec6d(acc)
+    wp.atomic_add(out, e, 0, -(wp.transpose(mat66d(Ad[e])) * acc_d))
+    wp.atomic_add(out, e, 1, acc_d)
 
 
 @wp.kernel
@@ -514,18 +541,31 @@ def pose_system_kernel(
 
 
 @wp.kernel
-def backsub_coupling_kernel(
-    Epix: wp.array(dtype=vec6, ndim=4),  # [E,h,w,2]
+def edge_step_kernel(
+    Ad: wp.array(dtype=mat66),  # [E] edge_adjoint per edge
     edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
     pose_edges: wp.array(dtype=wp.int32),  # [Ep]
     dxi: wp.array(dtype=vec6),  # [n] pose steps
+    step: wp.array(dtype=vec6),  # [E] out: dxi_j - Ad dxi_i (E_i . dxi_i + E_j . dxi_j = E_j . step)
+):
+    k = wp.tid()
+    e = pose_edges[k]
+    step[e] = dxi[edges[e][2]] - Ad[e] * dxi[edges[e][0]]
+
+
+@wp.kernel
+def backsub_coupling_kernel(
+    Epix: wp.array(dtype=vec6, ndim=3),  # [E,h,w] E_j per pixel
+    edges: wp.array(dtype=wp.vec4i),  # [E] slot-indexed
+    pose_edges: wp.array(dtype=wp.int32),  # [Ep]
+    step: wp.array(dtype=vec6),  # [E] edge_step_kernel's dxi_j - Ad dxi_i
     acc: wp.array(dtype=float, ndim=4),  # [n,C,h,w] out (accumulated): sum_e E_e(p) . dxi
 ):
     """The pose part of the back-substitution, ``E^T dxi``, per depth variable."""
     k, y, x = wp.tid()
     e = pose_edges[k]
     edge = edges[e]
-    t = wp.dot(Epix[e, y, x, 0], dxi[edge[0]]) + wp.dot(Epix[e, y, x, 1], dxi[edge[2]])
+    t = wp.dot(Epix[e, y, x], step[e])
     if t != 0.0:
         wp.atomic_add(acc, edge[0], edge[1], y, x, t)
 

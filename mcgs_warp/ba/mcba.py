@@ -11,7 +11,9 @@ The depths are eliminated with the Schur complement (eq. 10, ``C^-1 = 1/C``),
 ``(B - E C^-1 E^T) dxi = v - E C^-1 w``, sparsely and on the device: a depth of view
 (i, ci) couples only to pose i and to the far poses of the edges leaving (i, ci), so
 :func:`~mcgs_warp.kernels.ba.schur_pairs_kernel` reduces, for every pair of pose edges
-leaving one view, four 6x6 blocks; ``schur_scatter_kernel`` and ``pose_system_kernel`` add
+leaving one view, four 6x6 blocks (all from one per-pixel sum: a pixel's coupling to pose i
+is its coupling to pose j times the edge's adjoint, so only the latter is stored per pixel,
+:func:`~mcgs_warp.kernels.ba.edge_adjoint`); ``schur_scatter_kernel`` and ``pose_system_kernel`` add
 them and B's per-edge blocks into the 6n x 6n reduced camera system (float64), on the device. Work and memory grow with edges (and edge pairs) x grid
 pixels, never with keyframes^2 beyond that small system. SciPy solves it; the
 back-substitution ``dd = C^-1 (w - E^T dxi)``, the candidate state and its cost stay on
@@ -269,7 +271,7 @@ class _Window:
     device."""
 
     def __init__(self, buf: KeyframeBuffer, cfg: MCBAConfig, keyframes: list, edges: np.ndarray, targets, weights, prior=None):
-        from ..kernels.ba import mat66d, vec6d, window_copy_kernel
+        from ..kernels.ba import mat66, mat66d, vec6d, window_copy_kernel
         from ..kernels.se3 import vec6
 
         self.buf, self.cfg, dev = buf, cfg, buf.device
@@ -295,7 +297,9 @@ class _Window:
         # Linearization (eq. 9), the depth terms with the prior, back-substitution.
         self.H = wp.empty((E, 3), dtype=mat66d, device=dev)
         self.g = wp.empty((E, 2), dtype=vec6d, device=dev)
-        self.Epix = wp.empty((E, h, w, 2), dtype=vec6, device=dev)
+        self.Epix = wp.empty((E, h, w), dtype=vec6, device=dev)  # pose j's couplings; pose i's via self.Ad
+        self.Ad = wp.empty(E, dtype=mat66, device=dev)  # each edge's adjoint at the linearization (kernels.ba.edge_adjoint)
+        self.edge_step = wp.empty(E, dtype=vec6, device=dev)
         self.Cd = wp.empty(self.shape, dtype=float, device=dev)
         self.wd = wp.empty(self.shape, dtype=float, device=dev)
         self.prior = None
@@ -335,7 +339,7 @@ class _Window:
     # ----------------------------------------------------------------------------------
     def linearize(self) -> None:
         """Run the MCBA kernel at the current window state; add the prior's depth terms."""
-        from ..kernels.ba import mat66d, mcba_linearize_kernel, prior_terms_kernel, vec6d
+        from ..kernels.ba import edge_adjoint_kernel, mat66d, mcba_linearize_kernel, prior_terms_kernel, vec6d
 
         buf, cfg, dev, E = self.buf, self.cfg, self.dev, self.E
         workers = band_workers(dev, buf.h)
@@ -352,6 +356,7 @@ class _Window:
             wp.launch(mcba_linearize_kernel, dim=(self.E, rows, buf.w), inputs=[*inputs, row0], outputs=[H, g, self.Epix, self.Cd, self.wd, cost], device=dev)
 
         run_row_bands(dev, buf.h, band)
+        wp.launch(edge_adjoint_kernel, dim=E, inputs=[self.poses, self.arrays[0]], outputs=[self.Ad], device=dev)
         if banded:
             for total, parts in zip((self.H, self.g, self.edge_cost), sums):
                 total.numpy()[...] = parts.numpy().sum(axis=0)  # CPU: numpy() is the array itself
@@ -368,7 +373,7 @@ class _Window:
     def reduce(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Reduced camera system ``S = B - E Q E^T`` [6n,6n] and ``rhs = v - E Q w`` [6n]
         (float64) of the last linearization, with the depth block damped by ``lam``."""
-        from ..kernels.ba import pose_system_kernel, schur_pairs_kernel, schur_rhs_kernel, schur_scatter_kernel
+        from ..kernels.ba import pose_system_kernel, schur_pair_blocks_kernel, schur_pairs_kernel, schur_rhs_kernel, schur_scatter_kernel
 
         dev, h, e_arr = self.dev, self.buf.h, self.arrays[0]
         for arr in (self.blocks, self.depth_rhs, self.S, self.rhs):
@@ -376,11 +381,12 @@ class _Window:
         if self.P:
             # banded over pairs and pose edges (each writes only its own blocks)
             run_row_bands(dev, self.P, lambda w, p0, n: wp.launch(schur_pairs_kernel, dim=(n, h), inputs=[self.Epix, self.Ct, e_arr, self.pairs, lam, p0], outputs=[self.blocks], device=dev))
+            wp.launch(schur_pair_blocks_kernel, dim=self.P, inputs=[self.pairs, self.Ad], outputs=[self.blocks], device=dev)
             wp.launch(schur_scatter_kernel, dim=(self.P, 4, 6, 6), inputs=[self.blocks, self.pairs, e_arr], outputs=[self.S], device=dev)
             run_row_bands(
                 dev,
                 len(self.pe),
-                lambda w, k0, n: wp.launch(schur_rhs_kernel, dim=(n, h), inputs=[self.Epix, self.Ct, self.wt, e_arr, self.pose_edges, lam, k0], outputs=[self.depth_rhs], device=dev),
+                lambda w, k0, n: wp.launch(schur_rhs_kernel, dim=(n, h), inputs=[self.Epix, self.Ad, self.Ct, self.wt, e_arr, self.pose_edges, lam, k0], outputs=[self.depth_rhs], device=dev),
             )
             wp.launch(pose_system_kernel, dim=(len(self.pe), 6, 6), inputs=[self.H, self.g, self.depth_rhs, e_arr, self.pose_edges], outputs=[self.S, self.rhs], device=dev)
         return self.S.numpy().copy(), self.rhs.numpy().copy()
@@ -388,17 +394,18 @@ class _Window:
     def candidate(self, dxi: np.ndarray, lam: float) -> bool:
         """Candidate state ``T @ Exp(dxi)``, ``max(d + dd, min_disp)`` into ``poses_c``,
         ``disp_c``; False where the back-substituted ``dd`` is not finite."""
-        from ..kernels.ba import backsub_coupling_kernel, depth_candidate_kernel, pose_candidate_kernel
+        from ..kernels.ba import backsub_coupling_kernel, depth_candidate_kernel, edge_step_kernel, pose_candidate_kernel
 
         dev = self.dev
         self.dxi.assign(np.asarray(dxi, dtype=np.float32).reshape(self.n, 6))
         self.coupling.zero_()
         self.nonfinite.zero_()
         if len(self.pe):
+            wp.launch(edge_step_kernel, dim=len(self.pe), inputs=[self.Ad, self.arrays[0], self.pose_edges, self.dxi], outputs=[self.edge_step], device=dev)
             wp.launch(
                 backsub_coupling_kernel,
                 dim=(len(self.pe), self.buf.h, self.buf.w),
-                inputs=[self.Epix, self.arrays[0], self.pose_edges, self.dxi],
+                inputs=[self.Epix, self.arrays[0], self.pose_edges, self.edge_step],
                 outputs=[self.coupling],
                 device=dev,
             )

@@ -72,7 +72,7 @@ def test_blocks_match_finite_differences(model):
     E = len(edges)
     H = wp.zeros((E, 3), dtype=mat66d)
     g = wp.zeros((E, 2), dtype=vec6d)
-    Epix = wp.zeros((E, h, w, 2), dtype=vec6)
+    Epix = wp.zeros((E, h, w), dtype=vec6)
     Cd = wp.zeros((3, 2, h, w), dtype=float)
     wd = wp.zeros((3, 2, h, w), dtype=float)
     cost = wp.zeros(E, dtype=float)
@@ -121,11 +121,18 @@ def test_blocks_match_finite_differences(model):
         for blk, (A, B) in enumerate([(Ji, Ji), (Ji, Jj), (Jj, Jj)]):
             want = np.einsum("p,pka,pkb->ab", W, A, B)
             np.testing.assert_allclose(H[e, blk], want, rtol=2e-3, atol=2e-3 * np.abs(want).max())
+        # the kernel stores pose j's couplings; pose i's are -Ad^T of them (Ad of T_bj_bi)
+        T = np.linalg.inv(poses[j]) @ poses[i]
+        R, t = T[:3, :3], T[:3, 3]
+        Ad = np.zeros((6, 6))
+        Ad[:3, :3] = Ad[3:, 3:] = R
+        Ad[:3, 3:] = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+        couplings = [-Epix[e].astype(np.float64) @ Ad, Epix[e]]
         for blk, A in enumerate([Ji, Jj]):
             want = np.einsum("p,pka,pk->a", W, A, r0)
             np.testing.assert_allclose(g[e, blk], want, rtol=2e-3, atol=2e-3 * np.abs(want).max())
             want_E = np.einsum("p,pka,pk->pa", W, A, Jd).reshape(h, w, 6)
-            np.testing.assert_allclose(Epix[e, :, :, blk], want_E, rtol=2e-3, atol=2e-3 * np.abs(want_E).max())
+            np.testing.assert_allclose(couplings[blk], want_E, rtol=2e-3, atol=2e-3 * np.abs(want_E).max())
     np.testing.assert_allclose(Cd[:2], C_fd, rtol=2e-3, atol=2e-3 * C_fd.max())
     np.testing.assert_allclose(wd[:2], w_fd, rtol=2e-3, atol=2e-3 * np.abs(w_fd).max())
     assert C_fd.max() > 0 and np.abs(H[0, 0]).max() > 0

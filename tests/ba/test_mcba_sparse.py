@@ -47,7 +47,7 @@ def dense_linearization(mcba, edges, targets, weights, keyframes, prior):
     n, C, h, w, E = len(keyframes), len(buf.rig), buf.h, buf.w, len(edges)
     H = wp.zeros((E, 3), dtype=mat66d)
     g = wp.zeros((E, 2), dtype=vec6d)
-    Epix = wp.zeros((E, h, w, 2), dtype=vec6)
+    Epix = wp.zeros((E, h, w), dtype=vec6)
     Cd = wp.zeros((buf.capacity, C, h, w), dtype=float)
     wd = wp.zeros((buf.capacity, C, h, w), dtype=float)
     cost = wp.zeros(E, dtype=float)
@@ -55,7 +55,8 @@ def dense_linearization(mcba, edges, targets, weights, keyframes, prior):
     inputs = [buf.rays, buf.disp, buf.poses, buf.T_b_c, buf.cameras, *arrays, cfg.huber_delta, 0]
     wp.launch(mcba_linearize_kernel, dim=(E, h, w), inputs=inputs, outputs=[H, g, Epix, Cd, wd, cost])
     Hn, gn = H.numpy().astype(np.float64), g.numpy().astype(np.float64)
-    En = Epix.numpy().astype(np.float64).reshape(E, h * w, 2, 6)
+    Ej = Epix.numpy().astype(np.float64).reshape(E, h * w, 6)  # pose j's couplings; pose i's: -Ad^T of them
+    P = buf.get_poses()
     info = Cd.numpy()[keyframes].astype(np.float64)
     Cn = info.reshape(n, C, h * w)
     wn = wd.numpy()[keyframes].astype(np.float64).reshape(n, C, h * w)
@@ -77,8 +78,12 @@ def dense_linearization(mcba, edges, targets, weights, keyframes, prior):
         B[b, b] += Hn[e, 2]
         v[a] += gn[e, 0]
         v[b] += gn[e, 1]
-        G[si, ci, :, a] += En[e, :, 0]
-        G[si, ci, :, b] += En[e, :, 1]
+        T = np.linalg.inv(P[j]) @ P[i]
+        Ad = np.zeros((6, 6))
+        Ad[:3, :3] = Ad[3:, 3:] = T[:3, :3]
+        Ad[:3, 3:] = np.cross(T[:3, 3], T[:3, :3].T).T  # [t]x R
+        G[si, ci, :, a] += -Ej[e] @ Ad
+        G[si, ci, :, b] += Ej[e]
     return B, v, G, Cn, wn, info
 
 
