@@ -11,7 +11,9 @@ they call). Warp's CPU launches are synchronous, so the time the main
 thread spends in ``wp.launch`` plus the time it waits for the row bands' worker threads
 (:mod:`kernels.launch`) is the wall time inside kernels; the rest is Python, NumPy, OpenCV
 and copies. Prints one row per stage: calls, seconds, share of the run, seconds inside
-kernels and their share of the stage. Without the KITTI excerpt (its licence keeps it out of
+kernels and their share of the stage, and the cores it kept busy (process CPU seconds of
+every thread over wall seconds: 2.0 on two cores is both busy throughout; what a stage
+leaves idle, another running beside it could use). Without the KITTI excerpt (its licence keeps it out of
 the repository) it runs the built-in synthetic demo sequence instead. ``--cprofile`` also
 writes a cProfile dump (``python -m pstats``) of the whole run.
 """
@@ -52,8 +54,9 @@ class StageClock:
     """Wall time per stage (innermost stage charged) and main-thread time inside Warp kernels."""
 
     def __init__(self):
-        self.stack: list = []  # [stage, start, time of nested stages]
+        self.stack: list = []  # [stage, start, time of nested stages, CPU start, CPU of nested stages]
         self.seconds: dict = {}
+        self.cpu: dict = {}  # process CPU seconds (every thread: row bands, OpenCV's) per stage
         self.kernel: dict = {}
         self.calls: dict = {}
         self.main = threading.main_thread()
@@ -64,16 +67,18 @@ class StageClock:
         def timed(*args, **kwargs):
             if self.stack and self.stack[-1][0] in WHOLE:
                 return fn(*args, **kwargs)
-            self.stack.append([name, time.perf_counter(), 0.0])
+            self.stack.append([name, time.perf_counter(), 0.0, time.process_time(), 0.0])
             try:
                 return fn(*args, **kwargs)
             finally:
-                _, t0, nested = self.stack.pop()
-                dt = time.perf_counter() - t0
+                _, t0, nested, c0, cpu_nested = self.stack.pop()
+                dt, dc = time.perf_counter() - t0, time.process_time() - c0
                 self.seconds[name] = self.seconds.get(name, 0.0) + dt - nested
+                self.cpu[name] = self.cpu.get(name, 0.0) + dc - cpu_nested
                 self.calls[name] = self.calls.get(name, 0) + 1
                 if self.stack:
                     self.stack[-1][2] += dt
+                    self.stack[-1][4] += dc
         return timed
 
     def kernel_time(self, fn):
@@ -135,7 +140,7 @@ def main() -> int:
         generate(data, n_cameras=3, n_frames=40, seed=0, depth="exact")
         args.config = args.config or packaged_config("synthetic.yaml")
     clock.kernel.clear()  # the demo sequence's rendering is no part of the run
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if args.cprofile is not None:
         import cProfile
 
@@ -146,17 +151,19 @@ def main() -> int:
     if args.cprofile is not None:
         prof.disable()
         prof.dump_stats(str(args.cprofile))
-    total = time.perf_counter() - t0
+    total, total_cpu = time.perf_counter() - t0, time.process_time() - c0
     rest = total - sum(clock.seconds.values())
+    clock.cpu["other (loop, loading)"] = total_cpu - sum(clock.cpu.values())
     rows = sorted(clock.seconds.items(), key=lambda kv: -kv[1]) + [("other (loop, loading)", rest)]
     print(f"\n{data} (--every {args.every}): {total:.1f} s\n")
-    print(f"| {'stage':<22} | {'calls':>5} | {'seconds':>8} | {'of run':>6} | {'in kernels':>10} | {'share':>5} |")
-    print(f"|{'-' * 24}|{'-' * 7}|{'-' * 10}|{'-' * 8}|{'-' * 12}|{'-' * 7}|")
+    print(f"| {'stage':<22} | {'calls':>5} | {'seconds':>8} | {'of run':>6} | {'in kernels':>10} | {'share':>5} | {'cores':>5} |")
+    print(f"|{'-' * 24}|{'-' * 7}|{'-' * 10}|{'-' * 8}|{'-' * 12}|{'-' * 7}|{'-' * 7}|")
     for name, sec in rows:
         kern = clock.kernel.get(name if name in clock.seconds else "other", 0.0)
-        print(f"| {name:<22} | {clock.calls.get(name, ''):>5} | {sec:8.1f} | {100 * sec / total:5.1f}% | {kern:10.1f} | {100 * kern / max(sec, 1e-9):4.0f}% |")
+        cores = clock.cpu.get(name, 0.0) / max(sec, 1e-9)
+        print(f"| {name:<22} | {clock.calls.get(name, ''):>5} | {sec:8.1f} | {100 * sec / total:5.1f}% | {kern:10.1f} | {100 * kern / max(sec, 1e-9):4.0f}% | {cores:5.2f} |")
     kern_all = sum(clock.kernel.values())
-    print(f"| {'total':<22} | {'':>5} | {total:8.1f} | 100.0% | {kern_all:10.1f} | {100 * kern_all / total:4.0f}% |")
+    print(f"| {'total':<22} | {'':>5} | {total:8.1f} | 100.0% | {kern_all:10.1f} | {100 * kern_all / total:4.0f}% | {total_cpu / total:5.2f} |")
     return 0
 
 
