@@ -34,6 +34,7 @@ from ..frontend.stereo import RigStereo
 from ..geometry import matrix_to_quat, quat_to_matrix
 from ..mapping.follow import DepthMoved, PosesMoved
 from .config import RunConfig
+from .memory import release_freed_memory
 
 log = logging.getLogger("mcgs_warp.slam")
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
@@ -595,6 +596,7 @@ class Tracker:
         self.graph.update_window(everything, cross_view=self.overlap is not None, max_gap=radius, config=long_edges)
         self.measure(guided_new=True)
         self.loops = self.graph.close_loops(self.oracle or self.guided)
+        release_freed_memory()  # the matching's temporaries, before the solve's arrays over every edge
         offline = replace(self.mcba.cfg, iterations=iterations, prior_weight=self.mcba.cfg.prior_weight if self.exact_depth else 0.0)
         self._solve(everything, guided_new=True, config=offline)
         return self.take_update()
