@@ -240,6 +240,12 @@ class Mapper:
         [H,W] m): new lists, so that the loss uploads them again."""
         self.buf.targets.update({k: list(v) for k, v in targets.items()})
 
+    def forget_loss_targets(self) -> None:
+        """Drop the cached loss targets (images, depths and SSIM moments on the device, up to
+        ``losses.CACHE_BYTES``); they are made again when a keyframe is next optimized. For
+        a stage that does not map (global BA), whose peak memory they would add to."""
+        self.loss.forget()
+
     def _remap_optimizer(self, index: np.ndarray) -> None:
         """Carry the Gaussians' Adam moments to a new order (``index``: source or -1)."""
         for name, width in (("means", 3), ("log_scales", 3), ("quats", 4), ("opacity_logits", 1), ("colors", 3)):

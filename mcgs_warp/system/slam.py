@@ -146,6 +146,8 @@ class SLAM:
         self.poses_before_global_ba = self.buf.get_poses()
         if rc.global_ba_iterations and len(self.buf) > 1:
             self.progress("global BA", 0, 1, force=True)
+            self.mapper.forget_loss_targets()  # global BA's arrays over every edge are the run's peak
+            release_freed_memory()
             self.mapper.follow(tracker.global_ba(rc.global_ba_iterations, rc.global_ba_radius), self.seq.rig)
             release_freed_memory()
             self.seconds["global_ba"] = time.perf_counter() - t0

@@ -134,6 +134,24 @@ def test_refinement_densifies_in_its_first_half_only(fitted, mapping_seq):
     assert counts == {8: [], 10: [100]}, counts
 
 
+def test_forgotten_loss_targets_are_made_again_the_same(fitted, mapping_seq):
+    """Global BA drops the mapper's cached loss targets (its peak memory): the cache empties,
+    and the next steps remake them, so the map they fit is bit for bit the map of steps that
+    kept them."""
+    maps = []
+    for forget in (False, True):
+        m = make_mapper(mapping_seq, params=fitted)
+        m.optimize(2, densify=False)
+        assert len(m.loss._cache) > 0
+        if forget:
+            m.forget_loss_targets()
+            assert len(m.loss._cache) == 0
+        m.optimize(4, densify=False)
+        maps.append(m.map.to_numpy())
+    for name in maps[0]:
+        assert np.array_equal(maps[0][name], maps[1][name]), name
+
+
 def test_exposure_refinement_recovers_gain_and_bias(fitted, mapping_seq):
     cfg = MappingConfig(lr_means=0, lr_log_scales=0, lr_quats=0, lr_opacity=0, lr_colors=0, lr_exposure=0.015, densify_every=0, lambda_ssim=0.0)
     m = make_mapper(mapping_seq, cfg, fitted)
