@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from .camera import EQUIRECTANGULAR, FAR, NEAR, Camera, camera_in_domain, camera_project
-from .sweep import NO_COST, nearest_pixel, sample_bilinear, zncc_cost, zncc_cost_kernel
+from .sweep import NO_COST, keep_two_lowest, nearest_pixel, sample_bilinear, zncc_cost, zncc_cost_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -33,17 +33,6 @@ def candidate_depth(depth: wp.array(dtype=float, ndim=2), cand: wp.vec3, y: int,
     H = depth.shape[0]
     W = depth.shape[1]
     return depth[wp.clamp(y + int(cand[1]), 0, H - 1), wp.clamp(x + int(cand[0]), 0, W - 1)] * cand[2]
-
-
-@wp.func
-def keep_two_lowest(c: float, m1: wp.array(dtype=float, ndim=3), m2: wp.array(dtype=float, ndim=3), k: int, y: int, x: int):
-    """Fold one source's cost ``c`` into the lowest (``m1``) and second lowest (``m2``)."""
-    a = m1[k, y, x]
-    if c < a:
-        m2[k, y, x] = a
-        m1[k, y, x] = c
-    elif c < m2[k, y, x]:
-        m2[k, y, x] = c
 
 
 @wp.kernel
@@ -73,19 +62,6 @@ def candidate_warp_kernel(
             uv = camera_project(cam, X)
             value = sample_bilinear(src, s, uv[0], uv[1], cam.width, cam.height)
     warped[k, y, x] = value
-
-
-@wp.kernel
-def fold_lowest_kernel(
-    cost: wp.array(dtype=float, ndim=3),  # [D,H,W] one source's costs
-    row0: int,
-    m1: wp.array(dtype=float, ndim=3),  # [D,H,W] lowest cost over the sources so far
-    m2: wp.array(dtype=float, ndim=3),  # [D,H,W] second lowest
-):
-    """Fold one source's costs into the two lowest per candidate and pixel."""
-    k, r, x = wp.tid()
-    y = r + row0
-    keep_two_lowest(cost[k, y, x], m1, m2, k, y, x)
 
 
 @wp.kernel
@@ -404,9 +380,8 @@ def propagate_depth(
     cand_w = wp.array(cand, dtype=wp.vec3, device=device)
     cams_w = wp.array(list(src_cams), dtype=Camera, device=device)
     T_w = wp.array(np.asarray(T_src_ref, np.float32).reshape(S, 4, 4), dtype=wp.mat44, device=device)
-    # one source at a time: memory 4 x D x H x W floats, whatever the number of sources
+    # one source at a time: memory 3 x D x H x W floats, whatever the number of sources
     warped = wp.empty((D, H, W), dtype=float, device=device)
-    cost = wp.empty((D, H, W), dtype=float, device=device)
     m1 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     m2 = wp.full((D, H, W), NO_COST, dtype=float, device=device)
     for s in range(S):
@@ -414,8 +389,7 @@ def propagate_depth(
             wp.launch(candidate_warp_kernel, dim=(D, n, W), inputs=[ref_rays, depth_w, cand_w, src_w, cams_w, T_w, s, row0], outputs=[warped], device=device)
 
         def zncc_band(worker, row0, n):  # reads rows above and below: after the whole warp
-            wp.launch(zncc_cost_kernel, dim=(D, W), inputs=[ref_w, warped, radius, min_std, 1.0, row0, n], outputs=[cost], device=device)
-            wp.launch(fold_lowest_kernel, dim=(D, n, W), inputs=[cost, row0], outputs=[m1, m2], device=device)
+            wp.launch(zncc_cost_kernel, dim=(D, W), inputs=[ref_w, warped, radius, min_std, 1.0, row0, n, 1], outputs=[m1, m2], device=device)
 
         run_row_bands(device, H, warp_band)
         run_row_bands(device, H, zncc_band)  # every in-image pixel of the window valid

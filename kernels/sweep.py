@@ -131,6 +131,17 @@ def add_row(
     return t, n, sa, saa, sb, sbb, sab
 
 
+@wp.func
+def keep_two_lowest(c: float, m1: wp.array(dtype=float, ndim=3), m2: wp.array(dtype=float, ndim=3), k: int, y: int, x: int):
+    """Fold one source's cost ``c`` into the lowest (``m1``) and second lowest (``m2``)."""
+    a = m1[k, y, x]
+    if c < a:
+        m2[k, y, x] = a
+        m1[k, y, x] = c
+    elif c < m2[k, y, x]:
+        m2[k, y, x] = c
+
+
 @wp.kernel
 def zncc_cost_kernel(
     ref: wp.array(dtype=float, ndim=2),  # [H,W] grey reference
@@ -140,13 +151,17 @@ def zncc_cost_kernel(
     min_valid: float,  # fraction of the in-image window that must be valid
     row0: int,
     rows: int,
-    cost: wp.array(dtype=float, ndim=3),  # [N,H,W]: 1 - ZNCC, or NO_COST
+    fold: int,  # 0: write each cost; 1: fold it into (cost, second) as the lowest two so far
+    cost: wp.array(dtype=float, ndim=3),  # [N,H,W]: 1 - ZNCC, or NO_COST (fold: the lowest so far)
+    second: wp.array(dtype=float, ndim=3),  # [N,H,W] with fold: the second lowest so far (else unused)
 ):
     """``1 - ZNCC`` over the ``(2r+1)^2`` window of every pixel of rows ``row0 .. row0 + rows``
     in column ``x`` of warped image ``k`` (``NO_COST`` where less than ``min_valid`` of the
     in-image window is valid, or a window is flat: :func:`zncc_cost`). The window slides down
     the column, a row in and a row out (:func:`add_row`), so a pixel costs ``2 (2r+1)``
-    samples instead of ``(2r+1)^2``."""
+    samples instead of ``(2r+1)^2``. With ``fold`` (the propagation's sources, one launch
+    each) the cost goes straight into the two lowest over the sources
+    (:func:`keep_two_lowest`), with no cost array between."""
     k, x = wp.tid()
     t = float(0.0)  # scalar sums: vector accumulators made these loops 1.5-4x slower on the CPU
     n = float(0.0)
@@ -164,7 +179,10 @@ def zncc_cost_kernel(
         c = float(NO_COST)
         if n >= min_valid * t and n > 1.0:
             c = zncc_cost(n, sa, saa, sb, sbb, sab, min_std)
-        cost[k, y, x] = c
+        if fold != 0:
+            keep_two_lowest(c, cost, second, k, y, x)
+        else:
+            cost[k, y, x] = c
 
 
 @wp.kernel
@@ -343,7 +361,7 @@ def sweep(
     flat_warped, flat_cost = warped.reshape((S * D, H, W)), cost.reshape((S * D, H, W))
 
     def cost_band(worker, row0, rows):
-        wp.launch(zncc_cost_kernel, dim=(S * D, W), inputs=[ref_w, flat_warped, radius, min_std, 0.75, row0, rows], outputs=[flat_cost], device=device)
+        wp.launch(zncc_cost_kernel, dim=(S * D, W), inputs=[ref_w, flat_warped, radius, min_std, 0.75, row0, rows, 0], outputs=[flat_cost, flat_cost], device=device)
 
     run_row_bands(device, H, warp_band)
     run_row_bands(device, H, cost_band)

@@ -215,7 +215,6 @@ def test_sliding_window_zncc_equals_the_direct_window_sum():
     each pixel's window, image borders and invalid samples included."""
     import warp as wp
 
-    from mcgs_warp.kernels.propagation import fold_lowest_kernel
     from mcgs_warp.kernels.sweep import NO_COST, zncc_cost_kernel
 
     rng = np.random.default_rng(3)
@@ -234,17 +233,15 @@ def test_sliding_window_zncc_equals_the_direct_window_sum():
     cost = wp.empty((S * D, H, W), dtype=float, device="cpu")
     flat = wp.array(warped.reshape(S * D, H, W), dtype=float, device="cpu")
     for row0, rows in ((0, 5), (5, 1), (6, 17)):  # bands of rows, as run_row_bands launches them
-        wp.launch(zncc_cost_kernel, dim=(S * D, W), inputs=[ref_w, flat, r, 0.02, 0.75, row0, rows], outputs=[cost], device="cpu")
+        wp.launch(zncc_cost_kernel, dim=(S * D, W), inputs=[ref_w, flat, r, 0.02, 0.75, row0, rows, 0], outputs=[cost, cost], device="cpu")
     np.testing.assert_allclose(cost.numpy().reshape(S, D, H, W), sweep_ref, atol=2e-5)
 
     m1 = wp.full((D, H, W), NO_COST, dtype=float, device="cpu")
     m2 = wp.full((D, H, W), NO_COST, dtype=float, device="cpu")
-    one_cost = wp.empty((D, H, W), dtype=float, device="cpu")
     for s in range(S):
         one = wp.array(warped[s], dtype=float, device="cpu")
         for row0, rows in ((0, 11), (11, 12)):
-            wp.launch(zncc_cost_kernel, dim=(D, W), inputs=[ref_w, one, r, 0.02, 1.0, row0, rows], outputs=[one_cost], device="cpu")
-        wp.launch(fold_lowest_kernel, dim=(D, H, W), inputs=[one_cost, 0], outputs=[m1, m2], device="cpu")
+            wp.launch(zncc_cost_kernel, dim=(D, W), inputs=[ref_w, one, r, 0.02, 1.0, row0, rows, 1], outputs=[m1, m2], device="cpu")
     srt = np.sort(prop_ref, axis=0)
     np.testing.assert_allclose(m1.numpy(), srt[0], atol=2e-5)
     np.testing.assert_allclose(m2.numpy(), srt[1], atol=2e-5)
