@@ -253,6 +253,7 @@ class MCBA:
                 keypoints.disp[:] = kp.disp
         if stats.keyframes:
             stats.depth_info = win.Cd  # the window's own array: no later solve writes it
+        win.drop_linearization()  # before the noise's residual field: a global solve's peak memory
         if cfg.variance_components:
             stats.noise = win.noise(keyframes)
             if stats.noise is not None:
@@ -446,6 +447,12 @@ class _Window:
             if seen.any():
                 share = float(np.mean(Cd[seen] / (Cd[seen] + Cp[seen])))
         return dense_noise(res.numpy(), valid.numpy() > 0, e[:, 0] * len(buf.rig) + e[:, 1], share)
+
+    def drop_linearization(self) -> None:
+        """Free what only the LM iterations use (the per-pixel couplings, the per-edge and
+        pair blocks, the candidate state): the largest arrays of a window, [E,h,w] vec6."""
+        self.Epix = self.H = self.g = self.blocks = self.depth_rhs = self.per_worker = None
+        self.coupling = self.disp_c = self.poses_c = self.S = self.rhs = None
 
     def accept(self) -> None:
         self.disp, self.disp_c = self.disp_c, self.disp

@@ -107,6 +107,25 @@ def _solve(P, prob, variance_components=True):
     return mcba.solve(P.edges, P.targets, P.weights, keyframes=[0, 1, 2, 3], keypoints=prob)
 
 
+def test_the_noise_is_measured_after_the_linearization_is_freed(synthetic_seq, monkeypatch):
+    """The dense noise's residual field over every edge is a global solve's largest transient:
+    the window's per-pixel couplings [E,h,w] are gone by then, and the noise is what it was."""
+    import mcgs_warp.ba.mcba as mcba_module
+    from problems import Problem
+
+    P = Problem(synthetic_seq, [0, 2, 4, 6])
+    seen = []
+    noise = mcba_module._Window.noise
+
+    def spy(self, keyframes):
+        seen.append(self.Epix is None and self.blocks is None)
+        return noise(self, keyframes)
+
+    monkeypatch.setattr(mcba_module._Window, "noise", spy)
+    st = MCBA(P.buf, MCBAConfig(iterations=2, huber_delta=0.5)).solve(P.edges, P.targets, P.weights, keyframes=[0, 1, 2, 3])
+    assert seen == [True] and st.noise is not None and st.noise.n > 1000
+
+
 def test_a_noisy_or_biased_class_loses_weight_against_a_clean_one(synthetic_seq):
     """Dense correspondences with 0.05 grid px of noise; keypoint tracks clean (0.2 px), noisy
     (2 px) or biased (one keyframe's observations 2 px off): the noisy tracks' weight falls by
