@@ -33,7 +33,7 @@ import numpy as np
 from ..rig import CameraSpec, Rig
 
 
-KEEP = 64  # frames whose stereo depth stays cached, at sweep resolution (global BA asks for every keyframe's)
+KEEP = 64  # frames whose stereo depth stays cached in float32 at sweep resolution; older ones are archived in float16
 
 
 def scaled_spec(spec: CameraSpec, factor: int) -> CameraSpec:
@@ -90,7 +90,8 @@ class RigStereo:
         C = len(rig)
         self.pairs = [(a, b) for a in range(C) for b in range(C) if a != b and overlap[a, b] >= cfg.min_overlap and overlap[b, a] >= cfg.min_overlap]
         self._cache: dict = {}
-        self._depths: OrderedDict = OrderedDict()  # key -> (depths, confidences) of recent frames
+        self._depths: OrderedDict = OrderedDict()  # key -> [(depth, confidence)] per camera of recent frames
+        self._archive: dict = {}  # key -> the same in float16, for frames that left the recent ones
         self._rates: dict = {}  # (a, b) -> parallax rate [h,w] of the rig pair (px per 1/m)
 
     def parallax_rate(self, a: int, b: int, T_b_a: np.ndarray) -> np.ndarray:
@@ -151,14 +152,20 @@ class RigStereo:
     def depth(self, key, images) -> tuple[list, list]:
         """Per camera: depth [H,W] (m, 0 = none) and confidence [H,W] at full resolution,
         the most confident pair per pixel. The last ``KEEP`` frames' results are kept at
-        sweep resolution (the mapper asks again for every keyframe of the window after each
-        solve, and for every keyframe after global BA)."""
-        if key not in self._depths:
-            self._depths[key] = [self._rig_view(key, images, c)[:2] for c in range(len(self.rig))]
+        sweep resolution in float32 (the mapper asks again for every keyframe of the window
+        after each solve); older ones in float16 (2 bytes a value, 5e-4 relative), because
+        global BA asks again for every keyframe's: sweeping them all again cost a 143-keyframe
+        street drive 52 s of its global BA."""
+        if key in self._depths:
+            self._depths.move_to_end(key)
+            views = self._depths[key]
+        elif key in self._archive:
+            views = [(d.astype(np.float32), c.astype(np.float32)) for d, c in self._archive[key]]
+        else:
+            views = self._depths[key] = [self._rig_view(key, images, c)[:2] for c in range(len(self.rig))]
             while len(self._depths) > KEEP:
-                self._depths.popitem(last=False)
-        self._depths.move_to_end(key)
-        views = self._depths[key]
+                old, kept = self._depths.popitem(last=False)
+                self._archive[old] = [(d.astype(np.float16), c.astype(np.float16)) for d, c in kept]
         f = self.cfg.scale
         return [upsample_nearest(d, spec, f) for (d, _), spec in zip(views, self.rig.cameras)], [upsample_nearest(c, spec, f) for (_, c), spec in zip(views, self.rig.cameras)]
 

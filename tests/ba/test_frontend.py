@@ -136,9 +136,10 @@ def test_depth_priors(synthetic_seq):
 
 
 def test_stereo_depth_is_kept_per_frame(synthetic_seq, monkeypatch):
-    """RigStereo.depth keeps the last KEEP frames' results (at sweep resolution): asking again
-    for every earlier keyframe, as the mapper does after global BA, sweeps nothing again and
-    gives what a fresh RigStereo gives."""
+    """RigStereo.depth keeps the last KEEP frames' results (at sweep resolution, float32) and
+    archives older ones in float16: asking again for every earlier keyframe, as the mapper
+    does after global BA, sweeps nothing again; kept frames give exactly what a fresh
+    RigStereo gives, archived ones the same within float16 rounding."""
     from mcgs_warp.frontend import stereo as S
 
     rig = synthetic_seq.rig
@@ -147,20 +148,27 @@ def test_stereo_depth_is_kept_per_frame(synthetic_seq, monkeypatch):
     sweeps = []
     real = st.pair_sweeps
     st.pair_sweeps = lambda key, images: sweeps.append(key) or real(key, images)
-    frames = [synthetic_seq[k] for k in range(4)]
+    frames = [synthetic_seq[k] for k in range(5)]
     for f in frames:
         st.depth(f.index, f.images)
     C = len(rig)
-    assert len(sweeps) == 4 * C  # one request per camera and frame
-    d1, c1 = st.depth(frames[1].index, frames[1].images)  # kept: no sweep
-    assert len(sweeps) == 4 * C
-    st.depth(frames[0].index, frames[0].images)  # evicted (KEEP 3): swept again
-    assert len(sweeps) == 5 * C
-    fresh_d, fresh_c = S.RigStereo(rig, camera_overlap(rig, stride=8)).depth(frames[1].index, frames[1].images)
-    for a, b, ca, cb, spec in zip(d1, fresh_d, c1, fresh_c, rig.cameras):
-        assert a.shape == (spec.height, spec.width) and (a > 0).mean() > 0.1
-        np.testing.assert_array_equal(a, b)
-        np.testing.assert_array_equal(ca, cb)
+    assert len(sweeps) == 5 * C  # one request per camera and frame
+    d2, c2 = st.depth(frames[2].index, frames[2].images)  # kept
+    d0, c0 = st.depth(frames[0].index, frames[0].images)  # archived (KEEP 3)
+    assert len(sweeps) == 5 * C  # neither swept again
+    assert len(st._depths) == 3 and sorted(st._archive) == [frames[0].index, frames[1].index]
+    fresh = S.RigStereo(rig, camera_overlap(rig, stride=8))
+    for (d, c), f, exact in (((d2, c2), frames[2], True), ((d0, c0), frames[0], False)):
+        fresh_d, fresh_c = fresh.depth(f.index, f.images)
+        for a, b, ca, cb, spec in zip(d, fresh_d, c, fresh_c, rig.cameras):
+            assert a.shape == (spec.height, spec.width) and a.dtype == np.float32 and (a > 0).mean() > 0.1
+            if exact:
+                np.testing.assert_array_equal(a, b)
+                np.testing.assert_array_equal(ca, cb)
+            else:
+                assert np.array_equal(a > 0, b > 0) and not np.array_equal(a, b)  # rounded, nothing lost
+                np.testing.assert_allclose(a, b, rtol=2**-11, atol=0)
+                np.testing.assert_allclose(ca, cb, rtol=2**-11, atol=2**-25)
 
 
 def test_depth_source_choice(synthetic_seq, tmp_path):
