@@ -32,6 +32,7 @@ from ..kernels.camera import FAR
 from ..geometry import adjoint, invert, se3_exp
 from ..rig import Rig
 from .keypoint_tracker import KeypointConfig, KeypointTracker
+from .rig_motion import rig_motion
 
 
 @dataclass
@@ -61,6 +62,7 @@ class KeypointOdometry:
         self.poses: dict[int, np.ndarray] = {}  # frame -> T_w_b (odometry world)
         self.tracked: dict[int, bool] = {}  # frame -> placed by keypoints
         self.step_cov: dict[int, np.ndarray] = {}  # frame -> [6,6] covariance of the step from the frame before (right perturbation of T_prev^-1 T_frame)
+        self.two_view: set[int] = set()  # frames placed by their 2D-2D matches with the frame before (:func:`.rig_motion.rig_motion`)
 
     @property
     def views(self) -> dict:
@@ -81,9 +83,16 @@ class KeypointOdometry:
             guess = a if len(prev) < 2 else a @ invert(P[prev[-2]]) @ a  # constant velocity
             res = self.tracker.localize(views, prev, P, depth_at, guess=guess, solved=self.tracks.world_points)  # poses by frame: a dict serves
             T = res.T_w_b if res is not None else guess
+            if res is None:  # too few matched keypoints with a 3D point: the 2D-2D matches' metric motion
+                kc = self.tracker.cfg
+                two_view = rig_motion(self.tracker.views[prev[-1]], views, self.rig, self.tracker.partners, kc.ratio, kc.inlier_rad, kc.min_inliers)
+                if two_view is not None:
+                    T = a @ two_view.T_a_b
+                    self.step_cov[index] = two_view.cov
+                    self.two_view.add(index)
         self.frames.append(index)
         P[index] = T
-        self.tracked[index] = res is not None or not prev
+        self.tracked[index] = res is not None or not prev or index in self.two_view
         self.tracker.keep(index, views)
         self.tracks.add_views(index, views)
         if res is not None:
@@ -132,7 +141,7 @@ class KeypointOdometry:
             poses_of[k] = Pw[s]
         prob.disp[:] = f.disp
         self.tracks.update(prob, roots, window, poses_of, self.T_b_c)
-        if self.tracked[new]:
+        if self.tracked[new] and new not in self.two_view:  # a two-view step keeps its own covariance: few window tracks observe it
             self.step_cov[new] = self._step_covariance(f, Pw)
 
     def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray) -> np.ndarray:
