@@ -139,6 +139,20 @@ def se3_exp(xi) -> np.ndarray:
     return T
 
 
+def se3_log(T) -> np.ndarray:
+    """``Log(T)``: the twist ``xi = (rho, phi)`` [6] with ``se3_exp(xi) = T`` [4,4] (rotation angle below pi)."""
+    T = np.asarray(T, dtype=np.float64)
+    theta = float(rotation_angle(T[:3, :3]))
+    W = T[:3, :3] - T[:3, :3].T  # 2 sin(theta) [phi/theta]_x
+    w = np.array([W[2, 1], W[0, 2], W[1, 0]])
+    phi = w * (0.5 if theta < 1e-8 else 0.5 * theta / np.sin(theta))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    # V^-1 = I - K/2 + (1 - theta sin / (2 (1 - cos))) K^2 / theta^2
+    c = 1.0 / 12.0 if theta < 1e-4 else (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) / theta**2
+    rho = (np.eye(3) - 0.5 * K + c * (K @ K)) @ T[:3, 3]
+    return np.concatenate([rho, phi])
+
+
 def adjoint(T: np.ndarray) -> np.ndarray:
     """6x6 adjoint of a 4x4 pose for ``(rho, phi)`` ordering: ``T Exp(x) T^-1 = Exp(Ad x)``."""
     R, t = T[:3, :3], T[:3, 3]

@@ -31,7 +31,7 @@ from ..frontend.keyframes import KeyframeSelector
 from ..frontend.keypoint_odometry import KeypointOdometry
 from ..frontend.keypoint_tracker import KeypointTracker
 from ..frontend.stereo import RigStereo
-from ..geometry import matrix_to_quat, quat_to_matrix
+from ..geometry import matrix_to_quat, quat_to_matrix, se3_exp, se3_log
 from ..mapping.follow import DepthMoved, PosesMoved
 from .config import RunConfig
 from .memory import release_freed_memory
@@ -335,7 +335,7 @@ class Tracker:
         elif len(buf) == 1:
             T_init = poses[-1]
         else:
-            T_init = poses[-1] @ np.linalg.inv(poses[-2]) @ poses[-1]  # constant velocity
+            T_init = constant_velocity(poses[-2], poses[-1], buf.timestamps[-2], buf.timestamps[-1], frame.timestamp)
         odo = self.odometry
         if len(buf) and odo is not None and odo.span_tracked(int(buf.frame_index[-1]), frame.index):
             T_init = poses[-1] @ odo.relative(int(buf.frame_index[-1]), frame.index)  # the keypoint odometry's motion since the last keyframe
@@ -606,6 +606,16 @@ class Tracker:
 #: is a pause. Chosen on indoor seeds 6 and 10 (camera noise in a still, low-texture corridor reaches
 #: 0.006 rad; the slowest drive 0.024); KITTI's frames move 0.028 rad or more.
 STILL_MOTION = 0.01
+
+
+def constant_velocity(T_a: np.ndarray, T_b: np.ndarray, t_a: float, t_b: float, t: float) -> np.ndarray:
+    """The pose [4,4] at time ``t`` (s) if the rig keeps the body-frame twist it had from
+    ``T_a`` (time ``t_a``) to ``T_b`` (``t_b``): keyframes are not evenly spaced in time, and
+    repeating the last keyframe step at a gap of another length starts the solve a
+    fraction of a step off (facing a tiled wall, where keypoints fail, guided flow then locked
+    onto the tile beside the true one: 0.5 m jumps, tests/system/test_wall.py)."""
+    rate = (t - t_b) / (t_b - t_a) if t_b > t_a else 1.0
+    return T_b @ se3_exp(rate * se3_log(np.linalg.inv(T_a) @ T_b))
 
 
 def moving_time(stamps, motions, still: float = STILL_MOTION):
