@@ -139,18 +139,39 @@ def se3_exp(xi) -> np.ndarray:
     return T
 
 
-def se3_log(T) -> np.ndarray:
-    """``Log(T)``: the twist ``xi = (rho, phi)`` [6] with ``se3_exp(xi) = T`` [4,4] (rotation angle below pi)."""
-    T = np.asarray(T, dtype=np.float64)
-    theta = float(rotation_angle(T[:3, :3]))
-    W = T[:3, :3] - T[:3, :3].T  # 2 sin(theta) [phi/theta]_x
-    w = np.array([W[2, 1], W[0, 2], W[1, 0]])
-    phi = w * (0.5 if theta < 1e-8 else 0.5 * theta / np.sin(theta))
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    # V^-1 = I - K/2 + (1 - theta sin / (2 (1 - cos))) K^2 / theta^2
-    c = 1.0 / 12.0 if theta < 1e-4 else (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) / theta**2
-    rho = (np.eye(3) - 0.5 * K + c * (K @ K)) @ T[:3, 3]
-    return np.concatenate([rho, phi])
+def hat(v: np.ndarray) -> np.ndarray:
+    """The skew matrix [3,3] of ``v`` [3]: ``hat(v) @ x == cross(v, x)``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector [3] of ``R`` [3,3]."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(c)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-8:
+        return 0.5 * w
+    if np.pi - th < 1e-6:  # near pi: from the symmetric part
+        A = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(A)))
+        axis = A[:, i] / np.sqrt(max(A[i, i], 1e-300))
+        return th * axis / np.linalg.norm(axis)
+    return th / (2.0 * np.sin(th)) * w
+
+
+def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """Inverse [3,3] of SO(3)'s left Jacobian at rotation vector ``phi``: ``rho = J^-1 t`` in :func:`se3_log`."""
+    th = np.linalg.norm(phi)
+    K = hat(phi)
+    if th < 1e-6:
+        return np.eye(3) - 0.5 * K + K @ K / 12.0
+    return np.eye(3) - 0.5 * K + (1.0 / th**2 - (1 + np.cos(th)) / (2 * th * np.sin(th))) * K @ K
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """``(rho, phi)`` [6] with ``se3_exp(xi) == T`` (the inverse of :func:`~mcgs_warp.geometry.se3_exp`)."""
+    phi = so3_log(T[:3, :3])
+    return np.concatenate([so3_left_jacobian_inv(phi) @ T[:3, 3], phi])
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:

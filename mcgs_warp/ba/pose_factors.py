@@ -19,46 +19,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import adjoint, invert
-
-
-def _hat(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector [3] of ``R`` [3,3]."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    th = np.arccos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-8:
-        return 0.5 * w
-    if np.pi - th < 1e-6:  # near pi: from the symmetric part
-        A = (R + np.eye(3)) / 2.0
-        i = int(np.argmax(np.diag(A)))
-        axis = A[:, i] / np.sqrt(max(A[i, i], 1e-300))
-        return th * axis / np.linalg.norm(axis)
-    return th / (2.0 * np.sin(th)) * w
-
-
-def _left_jacobian_inv_so3(phi: np.ndarray) -> np.ndarray:
-    th = np.linalg.norm(phi)
-    K = _hat(phi)
-    if th < 1e-6:
-        return np.eye(3) - 0.5 * K + K @ K / 12.0
-    return np.eye(3) - 0.5 * K + (1.0 / th**2 - (1 + np.cos(th)) / (2 * th * np.sin(th))) * K @ K
-
-
-def se3_log(T: np.ndarray) -> np.ndarray:
-    """``(rho, phi)`` [6] with ``se3_exp(xi) == T`` (the inverse of :func:`~mcgs_warp.geometry.se3_exp`)."""
-    phi = so3_log(T[:3, :3])
-    return np.concatenate([_left_jacobian_inv_so3(phi) @ T[:3, 3], phi])
+from ..geometry import adjoint, hat, invert, se3_log, so3_left_jacobian_inv
 
 
 def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """The off-diagonal block of the SE(3) left Jacobian (Barfoot's Q)."""
     th = np.linalg.norm(phi)
-    P, Rh = _hat(phi), _hat(rho)
+    P, Rh = hat(phi), hat(rho)
     if th < 1e-5:
         return 0.5 * Rh + (P @ Rh + Rh @ P + P @ Rh @ P) / 6.0
     s, c = np.sin(th), np.cos(th)
@@ -70,7 +37,7 @@ def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
 def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
     """[6,6] inverse right Jacobian of SE(3) at ``xi = (rho, phi)``: ``Log(Exp(xi) Exp(d)) = xi + Jr^-1 d + O(d^2)``."""
     rho, phi = -xi[:3], -xi[3:]  # Jr(xi) = Jl(-xi)
-    Jinv = _left_jacobian_inv_so3(phi)
+    Jinv = so3_left_jacobian_inv(phi)
     out = np.zeros((6, 6))
     out[:3, :3] = out[3:, 3:] = Jinv
     out[:3, 3:] = -Jinv @ _q_matrix(rho, phi) @ Jinv

@@ -6,8 +6,8 @@ measured motions alone."""
 import numpy as np
 
 from mcgs_warp.ba.mcba import MCBA, MCBAConfig
-from mcgs_warp.ba.pose_factors import RelativePoseFactors, se3_log, se3_right_jacobian_inv
-from mcgs_warp.geometry import invert, se3_exp
+from mcgs_warp.ba.pose_factors import RelativePoseFactors, se3_right_jacobian_inv
+from mcgs_warp.geometry import invert, se3_exp, se3_log
 from problems import Problem, perturbed_pair
 
 
