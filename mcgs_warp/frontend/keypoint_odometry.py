@@ -85,7 +85,7 @@ class KeypointOdometry:
             T = res.T_w_b if res is not None else guess
             kc = self.tracker.cfg
             if res is None and sum(int(v.has_depth.sum()) for v in self.tracker.views[prev[-1]]) < kc.min_inliers * len(self.rig):
-                # PnP had little to stand on (fewer 3D points per camera than a pose needs: a surround
+                # PnP had little to stand on (fewer 3D points per camera, on average, than a pose needs: a surround
                 # rig's few overlapping pixels): the 2D-2D matches' metric motion. Where keypoints have
                 # depth and PnP still found no pose, constant velocity stays (KITTI every 3rd frame:
                 # the two-view step there was 6 % long, constant velocity 4 %)
@@ -178,6 +178,7 @@ class KeypointOdometry:
         keep = set(self.recent)
         for k in [k for k in self.tracker.views if k not in keep]:
             del self.tracker.views[k]
+        self.two_view &= keep
         self.tracks.retain(keep)
 
     def state_arrays(self) -> dict:

@@ -12,11 +12,13 @@ translation their lever arms cancel), so the scale rests on the cross-camera mat
 they do not determine it, the result is None, never a guess.
 
 Steps: (1) each camera of frame b matched against its own and its overlapping cameras of frame
-a (mutual, ratio test); (2) the rotation and direction of travel from the camera with the most
-essential-matrix inliers among its same-camera matches (RANSAC on normalized coordinates);
-(3) the length of the step from each cross-camera match along that direction (a weighted
-median); (4) a two-view bundle adjustment of the 6-DoF motion and one inverse depth per match
-(angular residuals, Huber), whose information gives the step's covariance. Poses: ``T_a_b``
+a (mutual, ratio test); (2) a hypothesis of rotation and direction of travel from each camera's
+essential matrix of its same-camera matches (RANSAC on normalized coordinates), completed by
+(3) the step length that fits the cross-camera matches best (truncated angular errors over
+lengths from 1 cm to 100 m) and (4) a two-view bundle adjustment of the 6-DoF motion and one
+inverse depth per match (angular residuals, Huber; its information gives the covariance); the
+hypothesis that explains the most matches wins; (5) the length again from its cross-camera
+inliers alone, with its standard deviation from the curvature of their cost. Poses: ``T_a_b``
 maps frame b's body into frame a's (DESIGN.md).
 """
 
@@ -43,10 +45,6 @@ class RigMotion:
     cross: int  # inliers between different cameras (what carries the scale)
 
 
-def _rotation(w: np.ndarray) -> np.ndarray:
-    return se3_exp(np.concatenate([np.zeros(3), w]))[:3, :3]
-
-
 def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: Rig, partners, ratio: float = 0.8, inlier_rad: float = 0.004, min_inliers: int = 20) -> RigMotion | None:
     """The motion ``T_a_b`` between rig frames a and b from their keypoints (``partners[c]``:
     the cameras of frame a that camera c of frame b is matched against, itself first), or None
@@ -54,6 +52,8 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
     the scale). ``inlier_rad``: inlier threshold, an angle between bearings."""
     import cv2
 
+    if all(list(p) == [c] for c, p in enumerate(partners)):
+        return None  # no camera is matched against another: nothing can measure the length
     T_b_c = np.stack([c.T_b_c for c in rig.cameras])
     rows = []
     for cb, vb in enumerate(views_b):
@@ -83,16 +83,17 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
         if len(sel) < max(8, min_inliers // 2):
             continue
         pa, pb = fa[sel, :2] / fa[sel, 2:], fb[sel, :2] / fb[sel, 2:]
-        E, mask = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=inlier_rad)
-        if E is None or E.shape != (3, 3):
+        Es, mask = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=inlier_rad)
+        if Es is None or Es.shape[1:] != (3,) or Es.shape[0] % 3:
             continue
-        _n, R_cb_ca, t_cb_ca, _mask = cv2.recoverPose(E, pa, pb, np.eye(3), mask=mask)
-        T_cb_ca = np.eye(4)
-        T_cb_ca[:3, :3], T_cb_ca[:3, 3] = R_cb_ca, t_cb_ca[:, 0]
-        T0 = T_b_c[c] @ np.linalg.inv(T_cb_ca) @ np.linalg.inv(T_b_c[c])  # unit-length camera step
-        found = _complete(T0, T_b_c[c][:3, 3], M, fa, fb, cross, T_b_c, inlier_rad, min_inliers)
-        if found is not None and (best is None or (found[1].sum(), -found[2]) > (best[1].sum(), -best[2])):
-            best = found
+        for E in Es.reshape(-1, 3, 3):  # the five-point solver can leave several
+            _n, R_cb_ca, t_cb_ca, _mask = cv2.recoverPose(E, pa, pb, np.eye(3), mask=mask.copy())
+            T_cb_ca = np.eye(4)
+            T_cb_ca[:3, :3], T_cb_ca[:3, 3] = R_cb_ca, t_cb_ca[:, 0]
+            T0 = T_b_c[c] @ np.linalg.inv(T_cb_ca) @ np.linalg.inv(T_b_c[c])  # unit-length camera step
+            found = _complete(T0, T_b_c[c][:3, 3], M, fa, fb, cross, T_b_c, inlier_rad, min_inliers)
+            if found is not None and (best is None or (found[1].sum(), -found[2]) > (best[1].sum(), -best[2])):
+                best = found
     if best is None:
         return None
     T, keep, _cost, cov = best
@@ -100,22 +101,26 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
     # (5) the length from the cross-camera inliers alone, along the adjusted direction: the
     # same-camera matches outnumber them and, through the rotation's small lever effect, pulled
     # the length 12-62 % off on a rendered street where the cross-camera matches' own optimum
-    # was 4-5 % off; their profile also says how well the length is known
+    # was 4-5 % off; the curvature of their cost says how well the length is known
     e = _angular_error(T, M[keep & same], fa[keep & same], fb[keep & same], T_b_c)
-    sigma2 = float(np.median(e**2) / 1.386)  # per bearing component (median of chi2 with 2 dof)
-    f, lo, hi = _length_profile(T, M[keep & ~same], fa[keep & ~same], fb[keep & ~same], T_b_c, sigma2, 2.0 * inlier_rad)
+    if n_cross < MIN_CROSS or not np.isfinite(e).any():
+        return None
+    sigma2 = float(np.median(e[np.isfinite(e)] ** 2) / 1.386)  # per bearing component (median of chi2 with 2 dof)
+    profile = _length_profile(T, M[keep & ~same], fa[keep & ~same], fb[keep & ~same], T_b_c, sigma2, 2.0 * inlier_rad)
+    if profile is None:
+        return None
+    f, scale_std = profile
     T = T.copy()
     T[:3, 3] *= f
     length = float(np.linalg.norm(T[:3, 3]))
     dirn = T[:3, :3].T @ T[:3, 3] / max(length, 1e-12)  # the step along rho = R^T dt
-    scale_std = 0.5 * (hi - lo) / f
-    # the step's covariance along its length is the profile's (the adjustment's own said what
-    # all matches, same-camera ones included, claim about it); across it, the adjustment's
-    P = np.eye(6)
-    P[:3, :3] -= np.outer(dirn, dirn)
-    cov = P @ cov @ P.T
-    cov[:3, :3] += (scale_std * length) ** 2 * np.outer(dirn, dirn)
-    if n_cross < MIN_CROSS or not np.isfinite(scale_std) or scale_std > MAX_SCALE_STD:
+    # the covariance along the length becomes the profile's (the adjustment's own said what all
+    # matches, same-camera ones included, claim about it), its correlations scaled with it
+    ba_std = float(np.sqrt(max(dirn @ cov[:3, :3] @ dirn, 1e-30)))
+    D = np.eye(6)
+    D[:3, :3] += (scale_std * length / ba_std - 1.0) * np.outer(dirn, dirn)
+    cov = D @ cov @ D.T
+    if not np.isfinite(scale_std) or scale_std > MAX_SCALE_STD:
         return None
     return RigMotion(T, M[keep], cov, scale_std, n_cross)
 
@@ -154,8 +159,10 @@ def _complete(T0, centre, M, fa, fb, cross, T_b_c, inlier_rad, min_inliers):
 
 def _length_profile(T, M, fa, fb, T_b_c, sigma2, cap):
     """The factor ``f`` on ``T``'s translation that the matches ``M`` fit best (truncated squared
-    angular errors over ``sigma2``, each capped at ``cap``), and the factors within one unit of
-    that cost (about one standard deviation), from 0.5 to 2 in 0.9 % steps."""
+    angular errors over ``sigma2``, each capped at ``cap``), searched from 0.5 to 2 in 0.9 %
+    steps and refined by a parabola through the cost near its least, and the relative standard
+    deviation of the length from that parabola's curvature (the cost is -2 log likelihood);
+    None where the least is at the search's edge or the cost does not curve up."""
     factors = np.geomspace(0.5, 2.0, 161)
     cost = []
     for f in factors:
@@ -163,8 +170,17 @@ def _length_profile(T, M, fa, fb, T_b_c, sigma2, cap):
         Tf[:3, 3] *= f
         cost.append(np.sum(np.minimum(_angular_error(Tf, M, fa, fb, T_b_c), cap) ** 2) / max(sigma2, 1e-18))
     cost = np.asarray(cost)
-    near = factors[cost <= cost.min() + 1.0]
-    return float(factors[int(np.argmin(cost))]), float(near.min()), float(near.max())
+    i = int(np.argmin(cost))
+    if i == 0 or i == len(factors) - 1:
+        return None
+    near = np.nonzero(np.abs(np.log(factors / factors[i])) <= 0.05)[0]  # within 5 % of the least: a quadratic there
+    a, b, _c = np.polyfit(np.log(factors[near]), cost[near], 2)
+    if a <= 0:
+        return None
+    x0 = -b / (2 * a)  # log f at the vertex
+    if abs(x0 - np.log(factors[i])) > 0.05:
+        return None
+    return float(np.exp(x0)), float(1.0 / np.sqrt(a))  # cost = (x - x0)^2 / sigma^2 with x = log f
 
 
 def _points_b(T: np.ndarray, rho: np.ndarray, M: np.ndarray, fa: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
@@ -184,10 +200,9 @@ def _angular_error(T, M, fa, fb, T_b_c) -> np.ndarray:
     return np.where(ok, np.arccos(np.clip(cosang, -1.0, 1.0)), np.inf)
 
 
-def _depths(T, M, fa, fb, T_b_c, T_ca_cb=None) -> np.ndarray:
+def _depths(T, M, fa, fb, T_b_c) -> np.ndarray:
     """Inverse depth along each match's bearing in a, midpoint-triangulated (NaN: behind or parallel)."""
-    if T_ca_cb is None:
-        T_ca_cb = np.einsum("nij,njk->nik", np.linalg.inv(T_b_c[M[:, 0]]), T[None] @ T_b_c[M[:, 2]])
+    T_ca_cb = np.einsum("nij,njk->nik", np.linalg.inv(T_b_c[M[:, 0]]), T[None] @ T_b_c[M[:, 2]])
     R, t = T_ca_cb[:, :3, :3], T_ca_cb[:, :3, 3]
     db = np.einsum("nij,nj->ni", R, fb)
     aa, bb, ab = (fa * fa).sum(1), (db * db).sum(1), (fa * db).sum(1)
@@ -201,7 +216,7 @@ def _depths(T, M, fa, fb, T_b_c, T_ca_cb=None) -> np.ndarray:
 
 
 def _two_view_ba(T0, M, fa, fb, T_b_c, inlier_rad, iterations: int = 30):
-    """Levenberg-Marquardt over the right perturbation of ``T0`` (rho, phi) and one inverse
+    """Damped Gauss-Newton (Levenberg-Marquardt's schedule, :mod:`~mcgs_warp.ba.lm`) over the right perturbation of ``T0`` (rho, phi) and one inverse
     depth per match along its bearing in a, the depths eliminated by the Schur complement
     (each is in its own 3 residuals): residuals are the unit bearing in b minus the normalized
     point there (about an angle), Huber at ``inlier_rad`` (reweighted). The step length is
