@@ -102,11 +102,9 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
     # same-camera matches outnumber them and, through the rotation's small lever effect, pulled
     # the length 12-62 % off on a rendered street where the cross-camera matches' own optimum
     # was 4-5 % off; the curvature of their cost says how well the length is known
-    e = _angular_error(T, M[keep & same], fa[keep & same], fb[keep & same], T_b_c)
-    if n_cross < MIN_CROSS or not np.isfinite(e).any():
+    if n_cross < MIN_CROSS:
         return None
-    sigma2 = float(np.median(e[np.isfinite(e)] ** 2) / 1.386)  # per bearing component (median of chi2 with 2 dof)
-    profile = _length_profile(T, M[keep & ~same], fa[keep & ~same], fb[keep & ~same], T_b_c, sigma2, 2.0 * inlier_rad)
+    profile = _length_profile(T, M[keep & ~same], fa[keep & ~same], fb[keep & ~same], T_b_c, 2.0 * inlier_rad)
     if profile is None:
         return None
     f, scale_std = profile
@@ -157,30 +155,33 @@ def _complete(T0, centre, M, fa, fb, cross, T_b_c, inlier_rad, min_inliers):
     return T, keep, float(np.mean(err[keep] ** 2)), cov
 
 
-def _length_profile(T, M, fa, fb, T_b_c, sigma2, cap):
-    """The factor ``f`` on ``T``'s translation that the matches ``M`` fit best (truncated squared
-    angular errors over ``sigma2``, each capped at ``cap``), searched from 0.5 to 2 in 0.9 %
-    steps and refined by a parabola through the cost near its least, and the relative standard
-    deviation of the length from that parabola's curvature (the cost is -2 log likelihood);
-    None where the least is at the search's edge or the cost does not curve up."""
+def _length_profile(T, M, fa, fb, T_b_c, cap):
+    """The factor ``f`` on ``T``'s translation that the matches ``M`` fit best (the sum of their
+    squared angular errors, each capped at ``cap``), searched from 0.5 to 2 in 0.9 % steps and
+    refined by a parabola through that cost near its least, and the relative standard deviation
+    of the length: the parabola's curvature with the noise variance from the fit's own residuals
+    (the least cost over its degrees of freedom, one per match once its depth is triangulated;
+    the keypoints' nominal noise made a rendered street's steps 7x overconfident). None where
+    the least is at the search's edge or the cost does not curve up."""
     factors = np.geomspace(0.5, 2.0, 161)
     cost = []
     for f in factors:
         Tf = T.copy()
         Tf[:3, 3] *= f
-        cost.append(np.sum(np.minimum(_angular_error(Tf, M, fa, fb, T_b_c), cap) ** 2) / max(sigma2, 1e-18))
+        cost.append(np.sum(np.minimum(_angular_error(Tf, M, fa, fb, T_b_c), cap) ** 2))
     cost = np.asarray(cost)
     i = int(np.argmin(cost))
-    if i == 0 or i == len(factors) - 1:
+    if i == 0 or i == len(factors) - 1 or len(M) < 3:
         return None
     near = np.nonzero(np.abs(np.log(factors / factors[i])) <= 0.05)[0]  # within 5 % of the least: a quadratic there
-    a, b, _c = np.polyfit(np.log(factors[near]), cost[near], 2)
+    a, b, c = np.polyfit(np.log(factors[near]), cost[near], 2)
     if a <= 0:
         return None
     x0 = -b / (2 * a)  # log f at the vertex
     if abs(x0 - np.log(factors[i])) > 0.05:
         return None
-    return float(np.exp(x0)), float(1.0 / np.sqrt(a))  # cost = (x - x0)^2 / sigma^2 with x = log f
+    sigma2 = max(c - b * b / (4 * a), 1e-30) / (len(M) - 1)  # least cost / (matches - the length)
+    return float(np.exp(x0)), float(np.sqrt(sigma2 / a))  # cost / sigma2 = (x - x0)^2 / std^2 + const, x = log f
 
 
 def _points_b(T: np.ndarray, rho: np.ndarray, M: np.ndarray, fa: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:

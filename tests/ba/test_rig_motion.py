@@ -108,7 +108,8 @@ def test_no_length_without_parallax():
 def test_odometry_places_frames_by_their_two_view_motion():
     """At 2 Hz no keypoint of the surround rig has a 3D point (no stereo, no sensor depth), so
     the PnP places nothing; the odometry then takes the two-view metric motion, with its
-    covariance, so the span counts as tracked (it starts keyframes and ties them in MCBA)."""
+    covariance, so the span counts as tracked (it starts keyframes and holds one whose dense
+    solve fails) but not as measured (no factor in MCBA)."""
     from mcgs_warp.ba.edges import camera_overlap
     from mcgs_warp.frontend.keypoint_odometry import KeypointOdometry
 
@@ -124,6 +125,7 @@ def test_odometry_places_frames_by_their_two_view_motion():
     for f in range(3):
         odo.track(5 * f, images=None)
     assert odo.two_view == {5, 10} and odo.span_tracked(0, 10)
+    assert not odo.span_measured(0, 10) and not odo.span_measured(5, 10)  # no MCBA factor: its covariance is less sure than PnP's
     true = np.linalg.inv(poses[0]) @ poses[2]
     est = odo.relative(0, 10)
     assert abs(np.linalg.norm(est[:3, 3]) / np.linalg.norm(true[:3, 3]) - 1) < 0.03
