@@ -91,7 +91,7 @@ class KeypointOdometry:
                 # the two-view step there was 6 % long, constant velocity 4 %)
                 two_view = rig_motion(self.tracker.views[prev[-1]], views, self.rig, self.tracker.partners, kc.ratio, kc.inlier_rad, kc.min_inliers)
                 if two_view is not None:
-                    T, step = a @ two_view.T_a_b, two_view.T_a_b
+                    T = a @ two_view.T_a_b
                     self.step_cov[index] = two_view.cov
                     self.two_view.add(index)
         self.frames.append(index)
@@ -103,8 +103,6 @@ class KeypointOdometry:
             self.tracks.link(index, res.matches)
         if prev:
             self._adjust(depth_at)
-            if index in self.two_view:  # no window track observes it: it keeps its measured step from the (adjusted) frame before
-                P[index] = P[prev[-1]] @ step
         self._forget()
         return OdometryStep(P[index], self.tracked[index], 0 if res is None else res.n_inliers)
 
