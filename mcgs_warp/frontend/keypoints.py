@@ -107,16 +107,18 @@ def masked_matches(desc_a: np.ndarray, desc_b: np.ndarray, allowed: np.ndarray, 
 
 
 def triangulate(T_a_b: np.ndarray, bear_a: np.ndarray, bear_b: np.ndarray):
-    """Midpoint triangulation of rays ``bear_a`` [P,3] (frame a) and ``bear_b`` [P,3] (frame b):
-    points [P,3] in frame a, and the ray ranges [P] along a and along b (negative: behind)."""
-    R, t = T_a_b[:3, :3], T_a_b[:3, 3]
-    db = bear_b @ R.T  # b's rays in frame a
+    """Midpoint triangulation of rays ``bear_a`` [P,3] (frame a) and ``bear_b`` [P,3] (frame b),
+    ``T_a_b`` [4,4] or one per pair [P,4,4]: points [P,3] in frame a, and the ray ranges [P]
+    along a and along b (negative: behind)."""
+    R, t = T_a_b[..., :3, :3], T_a_b[..., :3, 3]
+    batch = T_a_b.ndim == 3
+    db = np.einsum("pij,pj->pi", R, bear_b) if batch else bear_b @ R.T  # b's rays in frame a
     # minimise |s da - (t + r db)|: 2x2 normal equations per pair
     aa = np.einsum("ij,ij->i", bear_a, bear_a)
     bb = np.einsum("ij,ij->i", db, db)
     ab = np.einsum("ij,ij->i", bear_a, db)
-    at = bear_a @ t
-    bt = db @ t
+    at = np.einsum("pi,pi->p", bear_a, t) if batch else bear_a @ t
+    bt = np.einsum("pi,pi->p", db, t) if batch else db @ t
     det = aa * bb - ab * ab
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (at * bb - ab * bt) / det

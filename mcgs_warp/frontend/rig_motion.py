@@ -30,7 +30,7 @@ import numpy as np
 
 from ..geometry import se3_exp
 from ..rig import Rig
-from .keypoints import ViewKeypoints, mutual_matches
+from .keypoints import ViewKeypoints, mutual_matches, triangulate
 
 MIN_CROSS = 6  # cross-camera inliers below this do not measure a scale
 MAX_SCALE_STD = 0.1  # relative standard deviation of the step length above which it is unobserved
@@ -63,14 +63,12 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
                 continue
             m = mutual_matches(va.desc, vb.desc, ratio)
             rows.append(np.stack([np.full(len(m), ca), m[:, 0], np.full(len(m), cb), m[:, 1]], 1))
-    if not rows:
-        return None
-    M = np.concatenate(rows).astype(np.int64)
-    fa = np.stack([views_a[c].bearings[i] for c, i in M[:, :2]]) if len(M) else np.zeros((0, 3))
-    fb = np.stack([views_b[c].bearings[i] for c, i in M[:, 2:]]) if len(M) else np.zeros((0, 3))
-    same = M[:, 0] == M[:, 2]
+    M = np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 4), np.int64)
     if len(M) < min_inliers:
         return None
+    fa = np.stack([views_a[c].bearings[i] for c, i in M[:, :2]])
+    fb = np.stack([views_b[c].bearings[i] for c, i in M[:, 2:]])
+    same = M[:, 0] == M[:, 2]
     cross = np.nonzero(~same)[0]
     if len(cross) < MIN_CROSS:
         return None
@@ -108,6 +106,8 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
     if profile is None:
         return None
     f, scale_std = profile
+    if not np.isfinite(scale_std) or scale_std > MAX_SCALE_STD:
+        return None
     T = T.copy()
     T[:3, 3] *= f
     length = float(np.linalg.norm(T[:3, 3]))
@@ -118,8 +118,6 @@ def rig_motion(views_a: list[ViewKeypoints], views_b: list[ViewKeypoints], rig: 
     D = np.eye(6)
     D[:3, :3] += (scale_std * length / ba_std - 1.0) * np.outer(dirn, dirn)
     cov = D @ cov @ D.T
-    if not np.isfinite(scale_std) or scale_std > MAX_SCALE_STD:
-        return None
     return RigMotion(T, M[keep], cov, scale_std, n_cross)
 
 
@@ -202,18 +200,11 @@ def _angular_error(T, M, fa, fb, T_b_c) -> np.ndarray:
 
 
 def _depths(T, M, fa, fb, T_b_c) -> np.ndarray:
-    """Inverse depth along each match's bearing in a, midpoint-triangulated (NaN: behind or parallel)."""
-    T_ca_cb = np.einsum("nij,njk->nik", np.linalg.inv(T_b_c[M[:, 0]]), T[None] @ T_b_c[M[:, 2]])
-    R, t = T_ca_cb[:, :3, :3], T_ca_cb[:, :3, 3]
-    db = np.einsum("nij,nj->ni", R, fb)
-    aa, bb, ab = (fa * fa).sum(1), (db * db).sum(1), (fa * db).sum(1)
-    at, bt = (fa * t).sum(1), (db * t).sum(1)
-    det = aa * bb - ab * ab
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (at * bb - ab * bt) / det
-        r = (ab * at - aa * bt) / det
-    s_ray = s * np.linalg.norm(fa, axis=1)  # range along a's unit bearing
-    return np.where((s > 0) & (r > 0) & np.isfinite(s_ray), 1.0 / np.where(s_ray > 0, s_ray, 1.0), np.nan)
+    """Inverse depth along each match's unit bearing in a, midpoint-triangulated (NaN: behind or parallel)."""
+    T_c_b = np.linalg.inv(T_b_c)
+    _X, s, r = triangulate(T_c_b[M[:, 0]] @ T @ T_b_c[M[:, 2]], fa, fb)  # T_ca_cb per match
+    ok = (s > 0) & (r > 0) & np.isfinite(s)
+    return np.where(ok, 1.0 / np.where(ok, s, 1.0), np.nan)
 
 
 def _two_view_ba(T0, M, fa, fb, T_b_c, inlier_rad, iterations: int = 30):

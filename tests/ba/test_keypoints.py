@@ -172,3 +172,17 @@ def test_rig_stereo_keypoint_depth_matches_exact_depth(synthetic_seq):
     # 0.2-0.3 m baselines at 2-8 m on 320 px views: about 10 px of disparity, so half a pixel is 5 %
     assert np.median(errs) < 0.08, np.median(errs)
     assert np.percentile(errs, 25) < 0.04
+
+
+def test_triangulate_takes_one_pose_per_pair():
+    """A pose per pair [P,4,4] (rig_motion's pairs of different cameras) gives what each pair's
+    own pose gives."""
+    rng = np.random.default_rng(2)
+    T = se3_exp(rng.normal(0, 0.5, (5, 6)))
+    a = rng.normal(size=(5, 3)) + [0, 0, 4]
+    b = rng.normal(size=(5, 3)) + [0, 0, 4]
+    X, s, r = triangulate(T, a, b)
+    for p in range(5):
+        Xp, sp, rp = triangulate(T[p], a[p : p + 1], b[p : p + 1])
+        np.testing.assert_allclose(X[p], Xp[0], atol=1e-12)
+        np.testing.assert_allclose([s[p], r[p]], [sp[0], rp[0]], atol=1e-12)
