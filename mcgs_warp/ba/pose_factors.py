@@ -59,7 +59,7 @@ class RelativePoseFactors:
 
     def residuals(self, poses: np.ndarray) -> np.ndarray:
         """[P,6] ``Log(M^-1 T_a^-1 T_b)``."""
-        return np.stack([se3_log(Mi @ invert(poses[a]) @ poses[b]) for (a, b), Mi in zip(self.pairs, self.M_inv)]).reshape(-1, 6)
+        return np.array([se3_log(Mi @ invert(poses[a]) @ poses[b]) for (a, b), Mi in zip(self.pairs, self.M_inv)], np.float64).reshape(-1, 6)
 
     def noise(self, _poses=None) -> float:
         """1: the information is in absolute units (the odometry's covariance carries its own

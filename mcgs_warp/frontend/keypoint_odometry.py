@@ -9,7 +9,9 @@ and a sliding-window bundle adjustment over the last ``window`` frames (the trac
 factors, :class:`~mcgs_warp.ba.keypoint_factors.KeypointFactors`, Levenberg-Marquardt as MCBA's,
 :mod:`mcgs_warp.ba.lm`, the oldest pose held) refines poses and points. A keypoint's 3D point comes from what the rig
 measures (stereo between overlapping cameras, sensor depth), from its track as solved, or
-from the caller's ``depth_at`` (the SLAM's solved keyframe depth: a monocular rig).
+from the caller's ``depth_at`` (the SLAM's solved keyframe depth: a monocular rig). Where PnP
+finds no pose on a rig with few 3D keypoints, the rig's two-view motion (:mod:`.rig_motion`)
+places the frame, and the window keeps that step as a factor.
 
 What it gives the SLAM (:mod:`mcgs_warp.system.slam`): the motion between two frames,
 :meth:`KeypointOdometry.relative`, with its covariance from the window's information
@@ -27,6 +29,7 @@ import numpy as np
 
 from ..ba.keypoint_factors import KeypointFactors
 from ..ba.lm import Damping, damped_step
+from ..ba.pose_factors import RelativePoseFactors
 from ..ba.keypoint_tracks import KeypointTracks
 from ..kernels.camera import FAR
 from ..geometry import adjoint, invert, se3_exp
@@ -62,7 +65,7 @@ class KeypointOdometry:
         self.poses: dict[int, np.ndarray] = {}  # frame -> T_w_b (odometry world)
         self.tracked: dict[int, bool] = {}  # frame -> placed by keypoints
         self.step_cov: dict[int, np.ndarray] = {}  # frame -> [6,6] covariance of the step from the frame before (right perturbation of T_prev^-1 T_frame)
-        self.two_view: set[int] = set()  # frames placed by their 2D-2D matches with the frame before (:func:`.rig_motion.rig_motion`)
+        self.two_view: dict[int, np.ndarray] = {}  # frame -> [4,4] its step from the frame before, measured by their 2D-2D matches (:func:`.rig_motion.rig_motion`)
 
     @property
     def views(self) -> dict:
@@ -93,7 +96,7 @@ class KeypointOdometry:
                 if two_view is not None:
                     T = a @ two_view.T_a_b
                     self.step_cov[index] = two_view.cov
-                    self.two_view.add(index)
+                    self.two_view[index] = two_view.T_a_b
         self.frames.append(index)
         P[index] = T
         self.tracked[index] = res is not None or not prev or index in self.two_view
@@ -119,10 +122,14 @@ class KeypointOdometry:
             return
         f = KeypointFactors(prob, self.rig, cfg.stride, cfg.huber_px / cfg.stride, 1.0 / FAR)
         Pw = np.stack([poses_of[k] for k in window])
+        steps = self._two_view_factors(window, f, Pw)
         free = np.arange(6, 6 * n)
-        damping, cur = Damping(1e-4), f.cost(Pw)
+        damping, cur = Damping(1e-4), f.cost(Pw) + steps.cost(Pw)
         for _ in range(cfg.iterations):
             S, rhs = f.reduced_terms(Pw, damping.lam)
+            if len(steps):
+                S2, rhs2 = steps.reduced_terms(Pw, damping.lam)
+                S, rhs = S + S2, rhs + rhs2
             while True:
                 dx = damped_step(S, rhs, free, damping.lam)
                 if not np.all(np.isfinite(dx)):
@@ -130,7 +137,7 @@ class KeypointOdometry:
                 else:
                     f.candidate(dx)
                     Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
-                    c = f.cost(Pc, f.disp_c)
+                    c = f.cost(Pc, f.disp_c) + steps.cost(Pc)
                     if c <= cur:
                         Pw, cur = Pc, c
                         damping.accepted()
@@ -147,6 +154,26 @@ class KeypointOdometry:
         self.tracks.update(prob, roots, window, poses_of, self.T_b_c)
         if self.tracked[new] and new not in self.two_view:  # a two-view step keeps its own covariance: few window tracks observe it
             self.step_cov[new] = self._step_covariance(f, Pw)
+
+    def _two_view_factors(self, window, f: KeypointFactors, Pw: np.ndarray) -> RelativePoseFactors:
+        """The window's two-view steps (a frame and the one before it, both in the window) as
+        relative-pose factors: no track links a two-view frame to the frames before it, so
+        without its measured step the window holds it by the few tracks later frames add and
+        may turn it freely (a rendered street: 10-64 degrees at the next frame). Their
+        covariance (m, rad) is brought to the tracks' units by the tracks' measured variance
+        (grid px^2; 1/64 grid px^2, a pixel, where too few residuals measure it)."""
+        pairs, motions, info = [], [], []
+        for s in range(1, len(window)):
+            k = window[s]
+            if k in self.two_view and window[s - 1] == self.frames[self.frames.index(k) - 1] and k in self.step_cov:
+                pairs.append((s - 1, s))
+                motions.append(self.two_view[k])
+                info.append(np.linalg.pinv(self.step_cov[k]))
+        if pairs:
+            noise = f.noise(Pw)
+            sigma2 = (1.0 / self.cfg.stride) ** 2 if noise is None else noise.sigma2
+            info = [sigma2 * I for I in info]
+        return RelativePoseFactors(pairs, motions, info)
 
     def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray) -> np.ndarray:
         """[6,6] covariance of the newest step ``T_prev^-1 T_new`` (right perturbation), from
@@ -189,6 +216,7 @@ class KeypointOdometry:
         return {"odometry.frames": f, "odometry.poses": np.stack([self.poses[int(i)] for i in f]) if len(f) else np.zeros((0, 4, 4)),
                 "odometry.tracked": np.array([self.tracked[int(i)] for i in f], bool), "odometry.step_cov": cov,
                 "odometry.two_view": np.array(sorted(self.two_view), np.int64),
+                "odometry.two_view_steps": np.stack([self.two_view[i] for i in sorted(self.two_view)]) if self.two_view else np.zeros((0, 4, 4)),
                 **self.tracks.state_arrays("odometry.tracks.")}
 
     def load_state_arrays(self, a: dict, views_of) -> None:
@@ -197,7 +225,7 @@ class KeypointOdometry:
         self.poses = {i: T for i, T in zip(self.frames, a["odometry.poses"])}
         self.tracked = {i: bool(t) for i, t in zip(self.frames, a["odometry.tracked"])}
         self.step_cov = {i: c for i, c in zip(self.frames, a["odometry.step_cov"]) if np.all(np.isfinite(c))}
-        self.two_view = {int(i) for i in a["odometry.two_view"]}
+        self.two_view = {int(i): T for i, T in zip(a["odometry.two_view"], a["odometry.two_view_steps"])}
         for i in self.recent:
             views = views_of(i)
             self.tracker.keep(i, views)
@@ -207,14 +235,6 @@ class KeypointOdometry:
     def relative(self, a: int, b: int) -> np.ndarray:
         """``T_a^-1 T_b`` [4,4]: the rig's motion from frame ``a`` to frame ``b``."""
         return invert(self.poses[a]) @ self.poses[b]
-
-    def span_measured(self, a: int, b: int) -> bool:
-        """Whether PnP placed every frame after ``a`` up to ``b`` (:meth:`span_tracked` and no
-        two-view step): what MCBA may weigh as a measured motion. A two-view step starts a
-        keyframe and holds one whose dense solve fails, but its covariance is less sure than
-        PnP's (on a rendered street its length errors were 1.1-2.7x its standard deviation) and
-        as a factor it cost the 80-frame street drive 0.21 -> 0.76 m."""
-        return self.span_tracked(a, b) and not any(a < f <= b for f in self.two_view)
 
     def span_tracked(self, a: int, b: int) -> bool:
         """Whether keypoints placed every frame after ``a`` up to ``b`` (tracked frames only)."""

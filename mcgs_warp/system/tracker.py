@@ -216,27 +216,27 @@ class Tracker:
 
     def _odometry_factors(self, keyframes) -> list:
         """The keypoint odometry's motion between consecutive keyframes of ``keyframes``
-        where it placed every frame between them, weighted by its information times
-        ``tracking.odometry_weight`` (:class:`~mcgs_warp.ba.pose_factors.RelativePoseFactors`);
-        only where its keypoints have depth of their own (sensor depth or rig stereo) and PnP placed
-        every frame (no two-view step, :meth:`~mcgs_warp.frontend.keypoint_odometry.KeypointOdometry.span_measured`:
-        its covariance, less sure than PnP's, pulled good dense solves on the 80-frame street,
-        0.12 -> 0.76 m). On a rig
-        without either (front + back cameras, a mono prior) it placed its points on this
-        system's solved depth: as a factor it pulled the window's scale 4 % off (0.6 cm -> 2.5 cm
-        on 1.7 m, tests/system/test_rgb_only.py)."""
+        where it placed every frame between them (PnP or a two-view step), weighted by its
+        information times ``tracking.odometry_weight``
+        (:class:`~mcgs_warp.ba.pose_factors.RelativePoseFactors`). PnP steps count only where
+        keypoints have depth of their own (sensor depth or rig stereo): on a rig without either
+        (front + back cameras, a mono prior) PnP placed its points on this system's solved
+        depth, and as a factor it pulled the window's scale 4 % off (0.6 cm -> 2.5 cm on 1.7 m,
+        tests/system/test_rgb_only.py). Two-view steps take their length from the rig's lever
+        arms, not from any depth, so they count on every rig: on the 6-camera surround drive at
+        2 Hz, whose dense solves pass the health check with 0.1-89x steps, they hold the
+        trajectory (seeds 11-13: 1.74 / 165 / 2.21 m -> 0.23 / 0.25 / 1.18 m)."""
         from ..ba.pose_factors import RelativePoseFactors
 
         w, odo = self.cfg.tracking.odometry_weight, self.odometry
-        if odo is None or w <= 0 or not (self.exact_depth or self.stereo.pairs):
-            # without sensor depth or rig stereo its points come from this window's own depth: no
-            # independent measurement, and its covariance (which MCBA's class weights trust) overstates it
+        if odo is None or w <= 0:
             return []
+        own_depth = self.exact_depth or bool(self.stereo.pairs)
         keyframes = list(keyframes)
         pairs, motions, info = [], [], []
         for s in range(1, len(keyframes)):
             fa, fb = int(self.buf.frame_index[keyframes[s - 1]]), int(self.buf.frame_index[keyframes[s]])
-            if not odo.span_measured(fa, fb):
+            if not odo.span_tracked(fa, fb) or not (own_depth or all(f in odo.two_view for f in odo.frames if fa < f <= fb)):
                 continue
             cov = odo.relative_covariance(fa, fb)
             try:
