@@ -15,7 +15,8 @@ places the frame, and the window keeps that step as a factor.
 
 What it gives the SLAM (:mod:`mcgs_warp.system.slam`): the motion between two frames,
 :meth:`KeypointOdometry.relative`, with its covariance from the window's information
-(:meth:`KeypointOdometry.relative_covariance`, grid-pixel units, as MCBA's), which starts a new
+(:meth:`KeypointOdometry.relative_covariance`, metres and radians: the information times the
+tracks' measured variance), which starts a new
 keyframe, ties consecutive keyframes in MCBA (:class:`~mcgs_warp.ba.pose_factors.RelativePoseFactors`)
 and places the frames between keyframes. Poses live in the odometry's own world frame
 (the first frame's rig pose); only relative motion leaves this module.
@@ -122,7 +123,8 @@ class KeypointOdometry:
             return
         f = KeypointFactors(prob, self.rig, cfg.stride, cfg.huber_px / cfg.stride, 1.0 / FAR)
         Pw = np.stack([poses_of[k] for k in window])
-        steps = self._two_view_factors(window, f, Pw)
+        sigma2 = self._tracks_variance(f, Pw)
+        steps = self._two_view_factors(window, sigma2)
         free = np.arange(6, 6 * n)
         damping, cur = Damping(1e-4), f.cost(Pw) + steps.cost(Pw)
         for _ in range(cfg.iterations):
@@ -153,38 +155,43 @@ class KeypointOdometry:
         prob.disp[:] = f.disp
         self.tracks.update(prob, roots, window, poses_of, self.T_b_c)
         if self.tracked[new] and new not in self.two_view:  # a two-view step keeps its own covariance: few window tracks observe it
-            self.step_cov[new] = self._step_covariance(f, Pw)
+            self.step_cov[new] = self._step_covariance(f, steps, Pw)
 
-    def _two_view_factors(self, window, f: KeypointFactors, Pw: np.ndarray) -> RelativePoseFactors:
-        """The window's two-view steps (a frame and the one before it, both in the window) as
-        relative-pose factors: no track links a two-view frame to the frames before it, so
-        without its measured step the window holds it by the few tracks later frames add and
-        may turn it freely (a rendered street: 10-64 degrees at the next frame). Their
-        covariance (m, rad) is brought to the tracks' units by the tracks' measured variance
-        (grid px^2; 1/64 grid px^2, a pixel, where too few residuals measure it)."""
-        pairs, motions, info = [], [], []
-        for s in range(1, len(window)):
-            k = window[s]
-            if k in self.two_view and window[s - 1] == self.frames[self.frames.index(k) - 1] and k in self.step_cov:
-                pairs.append((s - 1, s))
-                motions.append(self.two_view[k])
-                info.append(np.linalg.pinv(self.step_cov[k]))
-        if pairs:
-            noise = f.noise(Pw)
-            sigma2 = (1.0 / self.cfg.stride) ** 2 if noise is None else noise.sigma2
-            info = [sigma2 * I for I in info]
-        return RelativePoseFactors(pairs, motions, info)
+    def _tracks_variance(self, f: KeypointFactors, Pw: np.ndarray) -> float:
+        """The variance the window's keypoint residuals measure (grid px^2,
+        :func:`~mcgs_warp.ba.variance.robust_variance`, the window's poses and points as the
+        unknowns; 1 when too few residuals measure it): the tracks' cost is written in unit
+        weights, so absolute information is multiplied by it to join them, and their own
+        information divided by it to become absolute."""
+        n = len(Pw)
+        noise = f.noise(Pw)
+        return 1.0 if noise is None or noise.redundancy <= 6 * (n - 1) else noise.sigma2 * noise.redundancy / (noise.redundancy - 6 * (n - 1))
 
-    def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray) -> np.ndarray:
+    def _two_view_factors(self, window, sigma2: float) -> RelativePoseFactors:
+        """The window's two-view steps (a frame and the one before it; the window is the last
+        frames in order) as relative-pose factors: no track links a two-view frame to the frames
+        before it, so without its measured step the window holds it by the few tracks later
+        frames add and may turn it freely (a rendered street: 10-64 degrees at the next frame).
+        Their covariance (m, rad) joins the tracks' unit-weight cost times the tracks' variance
+        ``sigma2`` (:meth:`_tracks_variance`), and so does the Huber threshold (3 of the step's
+        own standard deviations, as in MCBA)."""
+        pairs = [(s - 1, s) for s in range(1, len(window)) if window[s] in self.two_view and window[s] in self.step_cov]
+        motions = [self.two_view[window[b]] for _a, b in pairs]
+        info = [sigma2 * np.linalg.pinv(self.step_cov[window[b]]) for _a, b in pairs]
+        return RelativePoseFactors(pairs, motions, info, huber=3.0 * np.sqrt(sigma2))
+
+    def _step_covariance(self, f: KeypointFactors, steps: RelativePoseFactors, Pw: np.ndarray) -> np.ndarray:
         """[6,6] covariance of the newest step ``T_prev^-1 T_new`` (right perturbation), from
         the inverse of the window's reduced information (oldest pose held; the keypoint
-        observations' Huber weights) times the variance its residuals measure (grid px^2,
-        :func:`~mcgs_warp.ba.variance.robust_variance`, the window's poses and points as the
-        unknowns; 1 when too few): absolute units, as MCBA's class weights need."""
+        observations' Huber weights, and the two-view steps that hold the frames before it)
+        times the variance the tracks' residuals measure (:meth:`_tracks_variance`): absolute
+        units, as MCBA's class weights need."""
         n = len(Pw)
-        S = f.reduced_terms(Pw, 0.0)[0][6:, 6:]
-        noise = f.noise(Pw)
-        sigma2 = 1.0 if noise is None or noise.redundancy <= 6 * (n - 1) else noise.sigma2 * noise.redundancy / (noise.redundancy - 6 * (n - 1))
+        S = f.reduced_terms(Pw, 0.0)[0]
+        if len(steps):
+            S = S + steps.reduced_terms(Pw, 0.0)[0]
+        S = S[6:, 6:]
+        sigma2 = self._tracks_variance(f, Pw)
         try:
             cov = np.linalg.inv(S + 1e-9 * np.eye(len(S)))
         except np.linalg.LinAlgError:
@@ -225,7 +232,7 @@ class KeypointOdometry:
         self.poses = {i: T for i, T in zip(self.frames, a["odometry.poses"])}
         self.tracked = {i: bool(t) for i, t in zip(self.frames, a["odometry.tracked"])}
         self.step_cov = {i: c for i, c in zip(self.frames, a["odometry.step_cov"]) if np.all(np.isfinite(c))}
-        self.two_view = {int(i): T for i, T in zip(a["odometry.two_view"], a["odometry.two_view_steps"])}
+        self.two_view = {int(i): T for i, T in zip(a["odometry.two_view"], a["odometry.two_view_steps"], strict=True)}
         for i in self.recent:
             views = views_of(i)
             self.tracker.keep(i, views)

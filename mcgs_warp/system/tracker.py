@@ -226,6 +226,8 @@ class Tracker:
         arms, not from any depth, so they count on every rig: on the 6-camera surround drive at
         2 Hz, whose dense solves pass the health check with 0.1-89x steps, they hold the
         trajectory (seeds 11-13: 1.74 / 165 / 2.21 m -> 0.23 / 0.25 / 1.18 m)."""
+        from functools import reduce
+
         from ..ba.pose_factors import RelativePoseFactors
 
         w, odo = self.cfg.tracking.odometry_weight, self.odometry
@@ -236,7 +238,9 @@ class Tracker:
         pairs, motions, info = [], [], []
         for s in range(1, len(keyframes)):
             fa, fb = int(self.buf.frame_index[keyframes[s - 1]]), int(self.buf.frame_index[keyframes[s]])
-            if not odo.span_tracked(fa, fb) or not (own_depth or all(f in odo.two_view for f in odo.frames if fa < f <= fb)):
+            span = [f for f in odo.frames if fa < f <= fb]
+            two_view = all(f in odo.two_view for f in span)
+            if not odo.span_tracked(fa, fb) or not (own_depth or two_view):
                 continue
             cov = odo.relative_covariance(fa, fb)
             try:
@@ -246,7 +250,9 @@ class Tracker:
             if not np.all(np.isfinite(lam)):
                 continue
             pairs.append((s - 1, s))
-            motions.append(odo.relative(fa, fb))
+            # without the rig's own depth the window's PnP links stood on this system's depth:
+            # the measured two-view steps themselves
+            motions.append(odo.relative(fa, fb) if own_depth else reduce(np.matmul, [odo.two_view[f] for f in span]))
             info.append(w * 0.5 * (lam + lam.T))
         return [RelativePoseFactors(pairs, motions, info)] if pairs else []
 

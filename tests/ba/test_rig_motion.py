@@ -176,7 +176,7 @@ def test_window_keeps_a_two_view_step_against_few_wrong_links():
                 odo.step_cov[2] = np.diag([1e-4] * 3 + [1e-6] * 3)
             elif f == 3:  # 15 links to the two-view frame, 6 of them wrong; all to the frame before it
                 few = matches(views, odo.views[2], 2)[rng.permutation(len(matches(views, odo.views[2], 2)))[:15]]
-                few[:6, 2] = rng.permutation(few[:6, 2])
+                few[:6, 2] = np.roll(few[:6, 2], 1)  # each of the six to another keypoint
                 odo.tracks.link(3, np.concatenate([few, matches(views, odo.views[1], 1)]))
         odo._adjust(None)
         dt, dr = pose_distance(odo.relative(1, 2), np.linalg.inv(poses[1]) @ poses[2])
@@ -205,16 +205,55 @@ def test_two_view_spans_tie_keyframes_in_mcba_on_every_rig():
         odo.track(5 * f, images=None)
     assert set(odo.two_view) == {5, 10}
 
-    def factors(stereo_pairs):
-        fake = SimpleNamespace(cfg=SimpleNamespace(tracking=SimpleNamespace(odometry_weight=1.0)), odometry=odo, exact_depth=False,
+    def factors(stereo_pairs, exact_depth=False):
+        fake = SimpleNamespace(cfg=SimpleNamespace(tracking=SimpleNamespace(odometry_weight=1.0)), odometry=odo, exact_depth=exact_depth,
                                stereo=SimpleNamespace(pairs=stereo_pairs), buf=SimpleNamespace(frame_index=np.array([0, 5, 10])))
         out = Tracker._odometry_factors(fake, [0, 1, 2])
         return out[0] if out else None
 
+    measured = odo.two_view[5] @ odo.two_view[10]
+    odo.poses[10] = odo.poses[10] @ se3_exp(np.array([0.3, 0, 0, 0, 0, 0.01]))  # as if the window had moved it
     f = factors(())
-    assert [tuple(p) for p in f.pairs] == [(0, 1), (1, 2)]
-    np.testing.assert_allclose(f.residuals(np.stack([odo.poses[k] for k in (0, 5, 10)])), 0.0, atol=1e-9)  # the odometry's own motion
-    assert np.all(np.linalg.eigvalsh(f.info) > 0)
+    assert [tuple(p) for p in f.pairs] == [(0, 1), (1, 2)] and np.all(np.linalg.eigvalsh(f.info) > 0)
+    # without the rig's own depth the factor is the measured steps, not the window's poses
+    np.testing.assert_allclose(np.linalg.inv(f.M_inv[1]), odo.two_view[10], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.inv(f.M_inv[0]) @ np.linalg.inv(f.M_inv[1]), measured, atol=1e-9)
+    # with rig stereo, the window's (adjusted) motion
+    np.testing.assert_allclose(np.linalg.inv(factors(((0, 1),)).M_inv[1]), odo.relative(5, 10), atol=1e-12)
     odo.two_view.pop(10)  # as if PnP had placed frame 10
     assert [tuple(p) for p in factors(()).pairs] == [(0, 1)]
     assert [tuple(p) for p in factors(((0, 1),)).pairs] == [(0, 1), (1, 2)]
+    assert [tuple(p) for p in factors((), exact_depth=True).pairs] == [(0, 1), (1, 2)]
+
+
+def test_two_view_factor_weights_and_checkpoint():
+    """The window's two-view factor carries the step's information times the tracks' measured
+    variance, and its Huber threshold scales alike (3 of the step's own standard deviations,
+    as in MCBA); the measured steps survive a checkpoint."""
+    from mcgs_warp.ba.edges import camera_overlap
+    from mcgs_warp.frontend.keypoint_odometry import KeypointOdometry
+
+    rig = load_rig(packaged_config("rig_surround.yaml"))
+    odo = KeypointOdometry(rig, camera_overlap(rig, stride=8))
+    rng = np.random.default_rng(1)
+    steps = {f: se3_exp(rng.normal(0, 0.1, 6)) for f in (3, 4)}
+    cov = np.diag([1e-3, 2e-3, 3e-3, 1e-5, 2e-5, 3e-5])
+    for f in range(5):
+        odo.frames.append(f)
+        odo.poses[f], odo.tracked[f] = np.eye(4), True
+        if f in steps:
+            odo.two_view[f], odo.step_cov[f] = steps[f], cov
+    window = odo.frames[-4:]  # 1, 2, 3, 4: the steps into 3 and 4
+    fac = odo._two_view_factors(window, 0.04)
+    assert [tuple(p) for p in fac.pairs] == [(1, 2), (2, 3)]
+    np.testing.assert_allclose(fac.info[0], 0.04 * np.linalg.inv(cov), rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.inv(fac.M_inv[1]), steps[4], atol=1e-12)
+    assert np.isclose(fac.huber, 3.0 * 0.2)
+    # a residual of one standard deviation along x costs what the tracks' unit-weight cost gives it
+    P = np.stack([np.eye(4), np.linalg.inv(steps[3]), np.eye(4), steps[4] @ se3_exp(np.array([np.sqrt(1e-3), 0, 0, 0, 0, 0]))])  # slot 1 -> 2 as measured
+    assert np.isclose(fac.cost(P), 0.5 * 0.04, rtol=1e-6)
+    a = odo.state_arrays()
+    back = KeypointOdometry(rig, camera_overlap(rig, stride=8))
+    back.load_state_arrays({k: np.asarray(v) for k, v in a.items()}, views_of=lambda i: [ViewKeypoints(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 128), np.float32), np.zeros((0, 3)))] * len(rig))
+    assert set(back.two_view) == {3, 4}
+    np.testing.assert_allclose(back.two_view[4], steps[4])
