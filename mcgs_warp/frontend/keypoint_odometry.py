@@ -155,7 +155,7 @@ class KeypointOdometry:
         prob.disp[:] = f.disp
         self.tracks.update(prob, roots, window, poses_of, self.T_b_c)
         if self.tracked[new] and new not in self.two_view:  # a two-view step keeps its own covariance: few window tracks observe it
-            self.step_cov[new] = self._step_covariance(f, steps, Pw)
+            self.step_cov[new] = self._step_covariance(f, Pw, steps)
 
     def _tracks_variance(self, f: KeypointFactors, Pw: np.ndarray) -> float:
         """The variance the window's keypoint residuals measure (grid px^2,
@@ -180,7 +180,7 @@ class KeypointOdometry:
         info = [sigma2 * np.linalg.pinv(self.step_cov[window[b]]) for _a, b in pairs]
         return RelativePoseFactors(pairs, motions, info, huber=3.0 * np.sqrt(sigma2))
 
-    def _step_covariance(self, f: KeypointFactors, steps: RelativePoseFactors, Pw: np.ndarray) -> np.ndarray:
+    def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray, steps: RelativePoseFactors | None = None) -> np.ndarray:
         """[6,6] covariance of the newest step ``T_prev^-1 T_new`` (right perturbation), from
         the inverse of the window's reduced information (oldest pose held; the keypoint
         observations' Huber weights, and the two-view steps that hold the frames before it)
@@ -188,7 +188,7 @@ class KeypointOdometry:
         units, as MCBA's class weights need."""
         n = len(Pw)
         S = f.reduced_terms(Pw, 0.0)[0]
-        if len(steps):
+        if steps is not None and len(steps):
             S = S + steps.reduced_terms(Pw, 0.0)[0]
         S = S[6:, 6:]
         sigma2 = self._tracks_variance(f, Pw)
