@@ -24,6 +24,7 @@ and places the frames between keyframes. Poses live in the odometry's own world 
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -243,16 +244,21 @@ class KeypointOdometry:
         """``T_a^-1 T_b`` [4,4]: the rig's motion from frame ``a`` to frame ``b``."""
         return invert(self.poses[a]) @ self.poses[b]
 
+    def span(self, a: int, b: int) -> list:
+        """The frames it tracked after ``a`` up to ``b`` (``frames`` ascend: a bisection, not a
+        scan of the whole run)."""
+        return self.frames[bisect.bisect_right(self.frames, a) : bisect.bisect_right(self.frames, b)]
+
     def span_tracked(self, a: int, b: int) -> bool:
         """Whether keypoints placed every frame after ``a`` up to ``b`` (tracked frames only)."""
-        fs = [f for f in self.frames if a < f <= b]
+        fs = self.span(a, b)
         return a in self.poses and bool(fs) and all(self.tracked[f] and f in self.step_cov for f in fs)
 
     def relative_covariance(self, a: int, b: int) -> np.ndarray:
         """[6,6] covariance of :meth:`relative` ``(a, b)`` (right perturbation at ``b``): the
         steps' covariances moved to ``b`` by the adjoint of the motion after them and summed
         (steps taken as independent)."""
-        fs = [f for f in self.frames if a < f <= b]
+        fs = self.span(a, b)
         cov = np.zeros((6, 6))
         for f in fs:
             A = adjoint(invert(self.relative(f, b)))

@@ -238,7 +238,7 @@ class Tracker:
         pairs, motions, info = [], [], []
         for s in range(1, len(keyframes)):
             fa, fb = int(self.buf.frame_index[keyframes[s - 1]]), int(self.buf.frame_index[keyframes[s]])
-            span = [f for f in odo.frames if fa < f <= fb]
+            span = odo.span(fa, fb)
             two_view = all(f in odo.two_view for f in span)
             if not odo.span_tracked(fa, fb) or not (own_depth or two_view):
                 continue

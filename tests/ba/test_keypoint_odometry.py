@@ -95,3 +95,13 @@ def test_exact_depth_holds_the_odometrys_scale(synthetic_seq):
         err = (invert(true) @ odo.relative(i - 1, i))[:3, 3]
         sd = np.sqrt(np.trace(odo.relative_covariance(i - 1, i)[:3, :3]))
         assert abs(ratio - 1) < 0.005 and np.linalg.norm(err) < 5 * sd, (i, ratio, err, sd)
+
+
+def test_span_is_the_frames_between():
+    """``span(a, b)``: the tracked frames after ``a`` up to ``b``, found by bisection (the
+    frames ascend; some indices were never tracked), the same as a scan of every frame."""
+    odo = KeypointOdometry.__new__(KeypointOdometry)
+    odo.frames = [0, 3, 4, 9, 12, 13]
+    for a in range(-1, 15):
+        for b in range(-1, 15):
+            assert odo.span(a, b) == [f for f in odo.frames if a < f <= b], (a, b)
