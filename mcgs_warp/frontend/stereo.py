@@ -5,13 +5,15 @@ Per keyframe and camera ``a`` the reference view is swept (:mod:`mcgs_warp.kerne
 against every camera ``b`` of the rig whose field of view overlaps ``a``'s at the same
 timestamp (``T_b_a = inv(T_b_c[b]) T_b_c[a]``, known from calibration: the depth is
 metric), at ``1/scale`` resolution, and the two directions are checked against each other
-(left-right). Once poses are solved, :meth:`RigStereo.temporal_depth` also sweeps a view
-against the same camera at other keyframes, and per pixel the estimate with the most
-parallax (:meth:`RigStereo.parallax_rate`) wins: the rig pair near the cameras, the metres of
-travel for the far scene. The SLAM loop does not use it: as MCBA's prior it moved the
-RGB-only scale by 1.7 % (a temporal depth carries the trajectory's current scale, so it only
-holds that scale in place), and as a mapping target it changed neither depth L1 nor ATE on the
-built-in sequence (3 cameras, or 1).
+(left-right). Once poses are solved, :meth:`RigStereo.time_sweep` sweeps a view against the
+same camera at other keyframes (time-baseline multi-view stereo): the tracker's mapping
+targets take it where neither MCBA nor a rig pair measured a pixel (a side camera's near road
+at speed, a wall only one camera sees; :meth:`~mcgs_warp.system.tracker.Tracker.mapping_depths`).
+It is no MCBA prior: there it moved the RGB-only scale by 1.7 % (a temporal depth carries the
+trajectory's current scale, so it only holds that scale in place). :meth:`RigStereo.temporal_depth`
+merges it with the rig pairs, per pixel the estimate with the most parallax
+(:meth:`RigStereo.parallax_rate`): the rig pair near the cameras, the metres of travel for the
+far scene.
 
 Sampling: uniform in inverse depth between ``1/far`` and ``1/near``, ``plane_px`` pixels
 of epipolar motion per step for the pair's baseline (``planes`` caps the count); with the
@@ -70,6 +72,7 @@ class StereoConfig:
     lr_px: float = 1.0  # left-right consistency, px at sweep resolution
     temporal_near: float = 1.0  # m: nearest hypothesis of temporal sweeps (closer things are the rig pairs' job)
     temporal_baseline: float = 0.5  # m: a keyframe gets temporal sources once one is this far from it
+    temporal_sources: int = 2  # mapping targets: a keyframe pixel whose depth nothing else measured takes the sweep of its view against the same camera at this many keyframes at least temporal_baseline away, the nearest earlier ones of the window (time-baseline MVS; 0: off)
     min_overlap: float = 0.05  # camera pairs sharing less of their views are not swept
 
 
@@ -183,31 +186,37 @@ class RigStereo:
             best_d[take], best_c[take], best_r[take] = d[take], conf[take], self._pair_rate(a, b)[take]
         return best_d, best_c, best_r
 
-    def temporal_depth(self, key, images, sources) -> tuple[list, list]:
-        """Per camera ``c``: depth and confidence [h,w] at sweep resolution (upsample with
-        :func:`upsample_nearest`) from the rig pairs and from a sweep of the view against
-        ``sources[c]``, a list of ``(image, T_src_ref)`` (the same camera at other keyframes;
-        ``T_src_ref`` 4x4 from the solved poses), taking per pixel the confident estimate with
-        the most parallax (:meth:`parallax_rate`)."""
+    def time_sweep(self, c: int, image, sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depth (m, 0 = none), confidence and parallax rate [h,w] at sweep resolution of
+        camera ``c``'s view ``image`` swept against ``sources``, a non-empty list of ``(image,
+        T_src_ref)``: the same camera at other times (``T_src_ref`` 4x4 from solved poses, so
+        the depth has the trajectory's scale). Hypotheses from ``temporal_near`` to ``far``,
+        ``plane_px`` apart for the longest baseline; the rate credits the weakest source that
+        sees the pixel (best-of-sources matching does not say which one won)."""
         from ..kernels.sweep import inverse_depth_hypotheses, sweep
 
         cfg = self.cfg
+        Ts = np.stack([T for _im, T in sources])
+        base = max(float(np.linalg.norm(T[:3, 3])) for T in Ts)
+        step = cfg.plane_px / max(self.specs[c].intrinsics[0] * base, 1e-6)
+        n = int(np.clip(np.ceil((1.0 / cfg.temporal_near - 1.0 / cfg.far) / step), 8, cfg.planes))
+        rho = inverse_depth_hypotheses(cfg.temporal_near, cfg.far, n)
+        res = sweep(grey(image, cfg.scale), self.rays[c], [grey(im, cfg.scale) for im, _T in sources], [self.cams[c]] * len(sources), Ts, rho, cfg.radius, cfg.min_std, 1, cfg.max_cost, cfg.max_ratio, device=self.device)
+        rates = np.stack([self.parallax_rate(c, c, T) for T in Ts])
+        rate = np.where(rates > 0, rates, np.inf).min(0)
+        return res.depth(), res.confidence.numpy(), np.where(np.isfinite(rate), rate, 0.0).astype(np.float32)
+
+    def temporal_depth(self, key, images, sources) -> tuple[list, list]:
+        """Per camera ``c``: depth and confidence [h,w] at sweep resolution (upsample with
+        :func:`upsample_nearest`) from the rig pairs and from :meth:`time_sweep` against
+        ``sources[c]`` (a list of ``(image, T_src_ref)``, the same camera at other keyframes),
+        taking per pixel the confident estimate with the most parallax (:meth:`parallax_rate`)."""
         depths, confs = [], []
         for c in range(len(self.rig)):
             d, conf, rate = self._rig_view(key, images, c)
             src = sources[c] if c < len(sources) else []
             if src:
-                Ts = np.stack([T for _im, T in src])
-                base = max(float(np.linalg.norm(T[:3, 3])) for T in Ts)
-                step = cfg.plane_px / max(self.specs[c].intrinsics[0] * base, 1e-6)
-                n = int(np.clip(np.ceil((1.0 / cfg.temporal_near - 1.0 / cfg.far) / step), 8, cfg.planes))
-                rho = inverse_depth_hypotheses(cfg.temporal_near, cfg.far, n)
-                res = sweep(grey(images[c], cfg.scale), self.rays[c], [grey(im, cfg.scale) for im, _T in src], [self.cams[c]] * len(src), Ts, rho, cfg.radius, cfg.min_std, 1, cfg.max_cost, cfg.max_ratio, device=self.device)
-                td, tc = res.depth(), res.confidence.numpy()
-                # best-of-sources matching does not say which source won: credit the weakest one that sees the pixel
-                rates = np.stack([self.parallax_rate(c, c, T) for T in Ts])
-                trate = np.where(rates > 0, rates, np.inf).min(0)
-                trate = np.where(np.isfinite(trate), trate, 0.0)
+                td, tc, trate = self.time_sweep(c, images[c], src)
                 take = (tc > 0) & (td > 0) & ((conf <= 0) | (trate > rate))
                 d, conf = np.where(take, td, d).astype(np.float32), np.where(take, tc, conf).astype(np.float32)
             depths.append(d)

@@ -30,7 +30,7 @@ from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, NoCorrespondences, 
 from ..frontend.keyframes import KeyframeSelector
 from ..frontend.keypoint_odometry import KeypointOdometry
 from ..frontend.keypoint_tracker import KeypointTracker
-from ..frontend.stereo import RigStereo
+from ..frontend.stereo import RigStereo, upsample_nearest
 from ..geometry import matrix_to_quat, quat_to_matrix, se3_exp, se3_log
 from ..mapping.follow import DepthMoved, PosesMoved
 from .config import RunConfig
@@ -82,6 +82,7 @@ class Tracker:
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
         self.kept: list = []  # keyframes whose dense solve failed twice: MCBA holds their start (keypoint pose, else the constant-velocity prediction) and drops their temporal correspondences from then on (:meth:`_recover`)
         self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
+        self.time_depth: dict = {}  # keyframe -> per camera [h,w] float16 depth (m, 0 none) of its time-baseline sweep at sweep resolution (:meth:`_time_depth`)
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
             from ..data.sequence import warn
@@ -494,8 +495,9 @@ class Tracker:
         sensor depth as is; otherwise the current estimate (MCBA depth where correspondences
         or a prior constrain it, upsampled guided by the image, which fills up to a grid cell
         around constrained samples), sharpened by the JDSA-scaled
-        prior where the two agree within 10 %. (Keeping only well-measured pixels as
-        targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
+        prior where the two agree within 10 %, and where neither measured a pixel, the
+        keyframe's time-baseline sweep (:meth:`_time_depth`). (Keeping only well-measured
+        pixels as targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
         import cv2
 
         if self.exact_depth:
@@ -505,6 +507,7 @@ class Tracker:
         constrained = self._constrained(k, self._measured_weight([k])[k] if weight is None else weight)
         depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
         grids = buf.scales[k].numpy()  # [C,m,n]
+        swept = self._time_depth(k)
         out = []
         for c, spec in enumerate(self.seq.rig.cameras):
             h, w = spec.height // s, spec.width // s
@@ -515,8 +518,38 @@ class Tracker:
                 scaled = depths[c] * cv2.resize(field, (spec.width, spec.height), interpolation=cv2.INTER_LINEAR)
                 agree = (scaled > 0) & (full > 0) & (np.abs(scaled - full) < 0.1 * full)
                 full = np.where(agree, scaled, full)
+            if swept is not None:
+                full = np.where(full > 0, full, upsample_nearest(swept[c], spec, self.stereo.cfg.scale).astype(np.float32))
             out.append(full)
         return out
+
+    def _time_depth(self, k: int):
+        """Keyframe ``k``'s time-baseline depth, per camera [h,w] at sweep resolution (m, 0 =
+        none), or None: each view swept against the same camera at up to
+        ``tracking.stereo.temporal_sources`` keyframes of the window at least
+        ``temporal_baseline`` away (:meth:`RigStereo.time_sweep`; the nearest earlier ones
+        that tracking placed, else later ones: keyframe 0 is mapped after keyframe 1), at the
+        solved poses. Computed once, when the keyframe is first mapped. A side camera's near
+        road at speed or a wall only one camera sees: DIS does not match such motion and no
+        rig pair sees it, so the fill guessed its depth (street seed 12, RGB only: depth L1
+        1.28 -> 0.61 m)."""
+        if k in self.time_depth:
+            return self.time_depth[k]
+        sc, buf = self.stereo.cfg, self.buf
+        if sc.temporal_sources <= 0:
+            return None
+        poses, window, rig = buf.get_poses(), self.cfg.tracking.window, self.seq.rig
+        near = [j for j in range(k - 1, max(k - 1 - window, -1), -1)] + list(range(k + 1, min(k + 1 + window, len(buf))))
+        sources = [j for j in near if j not in self.lost and np.linalg.norm(poses[j][:3, 3] - poses[k][:3, 3]) >= sc.temporal_baseline][: sc.temporal_sources]
+        if not sources:
+            return None
+        T_w_c = [[poses[j] @ spec.T_b_c for spec in rig.cameras] for j in [k, *sources]]
+        views = []
+        for c in range(len(rig)):
+            src = [(buf.image(j, c), np.linalg.inv(T_w_c[n + 1][c]) @ T_w_c[0][c]) for n, j in enumerate(sources)]
+            views.append(self.stereo.time_sweep(c, buf.image(k, c), src)[0].astype(np.float16))
+        self.time_depth[k] = views
+        return views
 
     def _measured_weight(self, keyframes) -> dict:
         """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or

@@ -23,15 +23,17 @@ def small_config(keypoint_weight: float = 0.0):
     cfg.refinement.global_ba_iterations = 1
     cfg.refinement.iterations = 3
     cfg.output.renders = 0
+    cfg.tracking.stereo.temporal_baseline = 0.1  # keyframes' time-baseline sweeps on this slow drive: the checkpoint carries them
     return cfg
 
 
-@pytest.mark.parametrize("depth, stop", [("exact", 2), ("none", 1)])
+@pytest.mark.parametrize("depth, stop", [("exact", 2), ("none", 1), ("none", 4)])
 def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, depth, stop):
     """With exact depth the mapping targets are the sensor's; without depth they are
     MCBA's estimates (and the correspondences were re-estimated along the way), which
     the checkpoint must carry, and so are the keypoint tracks in MCBA (on in that case);
-    stopping after keyframe 0 interrupts the bootstrap, before anything was mapped."""
+    stopping after keyframe 0 interrupts the bootstrap, before anything was mapped; after
+    keyframe 3, the mapped keyframes' time-baseline depth must come back as it was swept."""
     data = tmp_path / "data"
     weight = 1.0 if depth == "none" else 0.0
     generate(data, n_cameras=2, n_frames=7, seed=4, progress=False, depth=depth)
@@ -55,7 +57,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
     np.testing.assert_allclose(b.poses, a.poses, atol=atol)
     assert resumed["n_gaussians"] == full["n_gaussians"]
     assert resumed["depth_source"] == full["depth_source"] == ("sensor" if depth == "exact" else "stereo")
-    if depth == "exact":
+    if depth == "exact" or stop > 1:
         return
 
     other = small_config(weight)
@@ -67,6 +69,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, dep
         names = set(z["keyframe_files"].tolist())
         assert len(names) == len(z["mapped_keys"]) >= 3
     assert {p.name for p in (tmp_path / "cut" / "checkpoint.keyframes").glob("*.npz")} == names
+    assert sum("time_depth_cam0" in np.load(p).files for p in (tmp_path / "cut" / "checkpoint.keyframes").glob("*.npz")) >= 3
     # the checkpoint's correspondences live beside it: without them resuming is refused, clearly
     assert any((tmp_path / "cut" / "checkpoint.corr").glob("seg_*.npz"))
     shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
@@ -97,7 +100,7 @@ def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypat
 
     rig = Rig([CameraSpec("a", "pinhole", 8, 6, (5.0, 5.0, 3.5, 2.5)), CameraSpec("b", "pinhole", 4, 4, (3.0, 3.0, 1.5, 1.5))])
     rng = np.random.default_rng(0)
-    fake = SimpleNamespace(tracker=SimpleNamespace(exact_depth=False), seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), mapper=SimpleNamespace(placed={}))
+    fake = SimpleNamespace(tracker=SimpleNamespace(exact_depth=False, time_depth={}), seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), mapper=SimpleNamespace(placed={}))
     for k in range(5):
         fake.buf.targets[k] = [rng.random((6, 8)).astype(np.float32), rng.random((4, 4)).astype(np.float32)]
         fake.mapper.placed[k] = rng.random((2, 3, 4))
@@ -106,9 +109,11 @@ def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypat
     first = _save_keyframe_files(fake, tmp_path / "kf")
     assert len(written) == 5 and first == sorted(written)
     fake.buf.targets[3][1] = fake.buf.targets[3][1] + 1
+    fake.tracker.time_depth[3] = [rng.random((3, 4)).astype(np.float16), rng.random((2, 2)).astype(np.float16)]
     written.clear()
     second = _save_keyframe_files(fake, tmp_path / "kf")
     assert written == [second[3]] and second[3] != first[3] and second[:3] == first[:3]
     with np.load(tmp_path / "kf" / second[3]) as z:
         np.testing.assert_array_equal(z["targets_cam1"], fake.buf.targets[3][1])
         np.testing.assert_array_equal(z["mapped_depth"], fake.mapper.placed[3])
+        np.testing.assert_array_equal(z["time_depth_cam1"], fake.tracker.time_depth[3][1])
