@@ -80,7 +80,7 @@ class Tracker:
         self._anchor = None  # the newest keyframe's keypoint pose (PnPResult) or None
         self._geometric, self._grid = None, None  # the last solve's depth-alignment factors (window, factors); grid rays and cameras for them
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
-        self.kept: list = []  # keyframes whose dense solve failed twice: MCBA holds their start (keypoint pose, else the constant-velocity prediction) and drops their temporal correspondences from then on (:meth:`_recover`)
+        self.kept: list = []  # keyframes whose dense solve failed twice where keypoints placed them or constant velocity carries them (not lost ones): MCBA holds that start and drops their temporal correspondences from then on (:meth:`_recover`)
         self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
         self.time_depth: dict = {}  # keyframe -> per camera [h,w] float16 depth (m, 0 none) of its time-baseline sweep at sweep resolution (:meth:`_time_depth`)
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
@@ -473,10 +473,13 @@ class Tracker:
             warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); re-matched around {how}, which no keypoint confirms")
             return False
         buf.set_poses(start[None], start=k)
-        # held there by MCBA from now on, its correspondences to other times dropped: also an
-        # unplaced start (the constant-velocity prediction), which the later solves otherwise
-        # moved with nothing that measures it (surround rig at 2 Hz, seed 13: steps 1.4x, 0.12x)
-        self.kept.append(k)
+        # held there by MCBA from now on, its correspondences to other times dropped: also the
+        # one failed keyframe constant velocity carries, which the later solves otherwise moved
+        # with nothing that measures it (surround rig at 2 Hz, seed 13: steps 1.4x, 0.12x); not
+        # a lost one (:meth:`_track_state`), whose dropped matches would leave the keyframes
+        # after a lost span nothing to other times
+        if placed or not self._carried:
+            self.kept.append(k)
         warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}; again after re-matching: {second}); keyframe {k} keeps {how}")
         return placed
 
@@ -528,19 +531,22 @@ class Tracker:
         none), or None: each view swept against the same camera at up to
         ``tracking.stereo.temporal_sources`` keyframes of the window at least
         ``temporal_baseline`` away (:meth:`RigStereo.time_sweep`; the nearest earlier ones
-        that tracking placed, else later ones: keyframe 0 is mapped after keyframe 1), at the
-        solved poses. Computed once, when the keyframe is first mapped. A side camera's near
+        whose poses tracking measured (neither lost nor kept), else later ones: keyframe 0 is
+        mapped after keyframe 1), at the solved poses. Computed once, the first time a
+        source is there; none for a monocular run (its scale drifts while the depth stays)
+        or a kept keyframe. A side camera's near
         road at speed or a wall only one camera sees: DIS does not match such motion and no
         rig pair sees it, so the fill guessed its depth (street seed 12, RGB only: depth L1
         1.28 -> 0.61 m)."""
         if k in self.time_depth:
             return self.time_depth[k]
         sc, buf = self.stereo.cfg, self.buf
-        if sc.temporal_sources <= 0:
-            return None
+        if sc.temporal_sources <= 0 or not self.metric_scale or k in self.kept:
+            return None  # a monocular run's scale drifts (the cache would not follow it); a kept pose may be a prediction
         poses, window, rig = buf.get_poses(), self.cfg.tracking.window, self.seq.rig
         near = [j for j in range(k - 1, max(k - 1 - window, -1), -1)] + list(range(k + 1, min(k + 1 + window, len(buf))))
-        sources = [j for j in near if j not in self.lost and np.linalg.norm(poses[j][:3, 3] - poses[k][:3, 3]) >= sc.temporal_baseline][: sc.temporal_sources]
+        unverified = set(self.lost) | set(self.kept)
+        sources = [j for j in near if j not in unverified and np.linalg.norm(poses[j][:3, 3] - poses[k][:3, 3]) >= sc.temporal_baseline][: sc.temporal_sources]
         if not sources:
             return None
         T_w_c = [[poses[j] @ spec.T_b_c for spec in rig.cameras] for j in [k, *sources]]

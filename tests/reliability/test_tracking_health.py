@@ -80,7 +80,8 @@ def test_a_lost_span_is_said_once_and_left_out_of_the_map(tmp_path, capfd):
     correspondence and no keypoint places them. Constant velocity carries the first failed
     keyframe; the rest are lost: one warning line names the span, they are not mapped, and
     tracking resumes (relocalized by keypoints) when the scene comes back. (With the default
-    keyframe test such frames are no keyframes at all: their flow is small.)"""
+    keyframe test such frames are no keyframes at all: their flow is small.) The carried keyframe is
+    held at its prediction; the lost ones are not."""
     import cv2
 
     from mcgs_warp.data.sequence import frame_name
@@ -103,8 +104,10 @@ def test_a_lost_span_is_said_once_and_left_out_of_the_map(tmp_path, capfd):
     assert len(lost) == 1, err
     assert metrics["tracking_lost_frames"] == [5, 6, 7]  # frame 4 is the one constant velocity may carry
     assert "frames 5-7 (3 keyframes)" in lost[0] and "tracking resumed at frame 8" in lost[0]
-    mapped = np.load(tmp_path / "run" / "checkpoint.npz")["mapped_keys"].tolist()
+    with np.load(tmp_path / "run" / "checkpoint.npz") as z:
+        mapped, meta = z["mapped_keys"].tolist(), json.loads(str(z["meta"]))
     assert not {5, 6, 7} & set(mapped) and {0, 8, 10} <= set(mapped)
+    assert meta["kept"] == [4]  # held at the prediction that carries it; the lost ones are not held (their matches kept)
 
 
 @pytest.mark.parametrize("depth_weight", [30.0, 0.0], ids=["depth-residual", "without"])

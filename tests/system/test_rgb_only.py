@@ -198,7 +198,6 @@ def test_a_camera_without_overlapping_neighbour_ends_covered(tmp_path):
     assert m["depth_l1_filled_m"] > 3 * m["depth_l1_measured_m"] and m["depth_l1_mixed_m"] > 2 * m["depth_l1_measured_m"] and 0.5 < m["depth_measured_fraction"] < 0.95, m
 
 
-
 def test_time_baseline_sweep_measures_what_no_rig_pair_sees(tmp_path):
     """RGB only on the street rig at 10 m/s: a side camera's near road and walls move too far
     between keyframes for DIS, and no rig pair sees most of them. Where neither MCBA nor a rig
