@@ -7,7 +7,7 @@ timestamp (``T_b_a = inv(T_b_c[b]) T_b_c[a]``, known from calibration: the depth
 metric), at ``1/scale`` resolution, and the two directions are checked against each other
 (left-right). Once poses are solved, :meth:`RigStereo.time_sweep` sweeps a view against the
 same camera at other keyframes (time-baseline multi-view stereo): the tracker's mapping
-targets take it where neither MCBA nor a rig pair measured a pixel (a side camera's near road
+targets take it where MCBA's depth constrains no pixel (a side camera's near road
 at speed, a wall only one camera sees; :meth:`~mcgs_warp.system.tracker.Tracker.mapping_depths`).
 It is no MCBA prior: there it moved the RGB-only scale by 1.7 % (a temporal depth carries the
 trajectory's current scale, so it only holds that scale in place). :meth:`RigStereo.temporal_depth`
@@ -72,7 +72,7 @@ class StereoConfig:
     lr_px: float = 1.0  # left-right consistency, px at sweep resolution
     temporal_near: float = 1.0  # m: nearest hypothesis of temporal sweeps (closer things are the rig pairs' job)
     temporal_baseline: float = 0.5  # m: a keyframe gets temporal sources once one is this far from it
-    temporal_sources: int = 2  # mapping targets: a keyframe pixel whose depth nothing else measured takes the sweep of its view against the same camera at this many keyframes at least temporal_baseline away, the nearest earlier ones of the window (time-baseline MVS; 0: off)
+    temporal_sources: int = 2  # mapping targets: a keyframe pixel whose depth MCBA does not constrain takes the sweep of its view against the same camera at this many keyframes at least temporal_baseline away, the nearest earlier ones of the window (time-baseline MVS; 0: off)
     min_overlap: float = 0.05  # camera pairs sharing less of their views are not swept
 
 
