@@ -18,7 +18,7 @@ import numpy as np
 #: 8: the keypoint odometry; 9: the background's cube map, sky masks; 10: MCBA's measured residual noise, kept keyframes;
 #: 11: the odometry's two-view frames; 12: their measured steps; 13: keyframes' time-baseline depth), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 13
+CHECKPOINT_FORMAT = 14
 
 
 def save_checkpoint(slam, path, next_frame: int, kf_frames: list) -> None:
@@ -62,7 +62,7 @@ def save_checkpoint(slam, path, next_frame: int, kf_frames: list) -> None:
 def _save_keyframe_files(slam, store: Path) -> list:
     """One file per mapped keyframe (``kf<k>_<content digest>.npz``: ``targets_cam<c>``,
     the full-resolution mapping depth targets, none for exact sensor depth, which is
-    re-read; ``mapped_depth`` [C,h,w]; ``time_depth_cam<c>``, the tracker's time-baseline
+    re-read; ``mapped_depth`` [C,h,w]; ``sweep_depth_cam<c>``, the tracker's sweep
     depth where it has one); a file already there is not written again."""
     import hashlib
 
@@ -73,8 +73,8 @@ def _save_keyframe_files(slam, store: Path) -> list:
     for k in sorted(slam.mapper.placed):
         arrays = {f"targets_cam{c}": np.asarray(slam.buf.targets[k][c] if not slam.tracker.exact_depth else np.zeros(0), np.float32) for c in range(len(slam.seq.rig))}
         arrays["mapped_depth"] = np.asarray(slam.mapper.placed[k], np.float64)
-        for c, d in enumerate(slam.tracker.time_depth.get(k, [])):
-            arrays[f"time_depth_cam{c}"] = d
+        for c, d in enumerate(slam.tracker.sweep_depth.get(k, [])):
+            arrays[f"sweep_depth_cam{c}"] = d
         digest = hashlib.blake2b(digest_size=10)
         for v in arrays.values():
             digest.update(np.ascontiguousarray(v).tobytes())
@@ -143,7 +143,7 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
             raise InputError(keyframe_store(path), None, f"unreadable checkpoint keyframe file ({e}); start without --resume") from None
         slam.mapper.placed = {k: f["mapped_depth"] for k, f in files.items()}
-        slam.tracker.time_depth = {k: [f[f"time_depth_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items() if "time_depth_cam0" in f}
+        slam.tracker.sweep_depth = {k: [f[f"sweep_depth_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items() if "sweep_depth_cam0" in f}
         if not slam.tracker.exact_depth:  # estimated targets: restore them as they were
             depths = {k: [f[f"targets_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items()}
         else:

@@ -82,7 +82,7 @@ class Tracker:
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
         self.kept: list = []  # keyframes whose dense solve failed twice where keypoints placed them or constant velocity carries them (not lost ones): MCBA holds that start and drops their temporal correspondences from then on (:meth:`_recover`)
         self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
-        self.time_depth: dict = {}  # keyframe -> per camera [h,w] float16 depth (m, 0 none) of its time-baseline sweep at sweep resolution (:meth:`_time_depth`)
+        self.sweep_depth: dict = {}  # keyframe -> per camera [h,w] float16 depth (m, 0 none) of its rig-pair and time-baseline sweeps at sweep resolution (:meth:`_sweep_depth`)
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
             from ..data.sequence import warn
@@ -499,7 +499,7 @@ class Tracker:
         or a prior constrain it, upsampled guided by the image, which fills up to a grid cell
         around constrained samples), sharpened by the JDSA-scaled
         prior where the two agree within 10 %, and where neither measured a pixel, the
-        keyframe's time-baseline sweep (:meth:`_time_depth`). (Keeping only well-measured
+        keyframe's rig-pair and time-baseline sweep depth (:meth:`_sweep_depth`). (Keeping only well-measured
         pixels as targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
         import cv2
 
@@ -510,7 +510,7 @@ class Tracker:
         constrained = self._constrained(k, self._measured_weight([k])[k] if weight is None else weight)
         depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
         grids = buf.scales[k].numpy()  # [C,m,n]
-        swept = self._time_depth(k)
+        swept = self._sweep_depth(k, frame)
         out = []
         for c, spec in enumerate(self.seq.rig.cameras):
             h, w = spec.height // s, spec.width // s
@@ -526,36 +526,39 @@ class Tracker:
             out.append(full)
         return out
 
-    def _time_depth(self, k: int):
-        """Keyframe ``k``'s time-baseline depth, per camera [h,w] at sweep resolution (m, 0 =
-        none), or None: each view swept against the same camera at up to
+    def _sweep_depth(self, k: int, frame):
+        """Keyframe ``k``'s sweep depth, per camera [h,w] at sweep resolution (m, 0 = none),
+        or None: per pixel the estimate with the most parallax (:meth:`RigStereo.temporal_depth`)
+        of its rig pairs and of its view swept against the same camera at up to
         ``tracking.stereo.temporal_sources`` keyframes of the window at least
-        ``temporal_baseline`` away (:meth:`RigStereo.time_sweep`; the nearest earlier ones
-        whose poses tracking measured (neither lost nor kept), else later ones: keyframe 0 is
-        mapped after keyframe 1), at the solved poses. Computed once, the first time a
-        source is there; none for a monocular run (its scale drifts while the depth stays)
-        or a kept keyframe. A side camera's near
-        road at speed or a wall only one camera sees: DIS does not match such motion and no
-        rig pair sees it, so the fill guessed its depth (street seed 12, RGB only: depth L1
-        1.28 -> 0.72 m)."""
-        if k in self.time_depth:
-            return self.time_depth[k]
-        sc, buf = self.stereo.cfg, self.buf
-        if sc.temporal_sources <= 0 or not self.metric_scale or k in self.kept:
-            return None  # a monocular run's scale drifts (the cache would not follow it); a kept pose may be a prediction
-        poses, window, rig = buf.get_poses(), self.cfg.tracking.window, self.seq.rig
-        near = list(range(k - 1, max(k - 1 - window, -1), -1)) + list(range(k + 1, min(k + 1 + window, len(buf))))
-        unverified = set(self.lost) | set(self.kept)
-        sources = [j for j in near if j not in unverified and np.linalg.norm(poses[j][:3, 3] - poses[k][:3, 3]) >= sc.temporal_baseline][: sc.temporal_sources]
-        if not sources:
+        ``temporal_baseline`` away (the nearest earlier ones whose poses tracking measured,
+        neither lost nor kept, else later ones: keyframe 0 is mapped after keyframe 1), at
+        the solved poses. Kept (float16) once a source is there; until then, in a monocular
+        run (its scale drifts while the depth would stay) and for a kept keyframe (its pose
+        may be a prediction), the rig pairs alone. A side camera's near road at speed or a
+        wall only one camera sees: DIS does not match such motion and no rig pair sees it,
+        so the fill guessed its depth; the pairs measure pixels MCBA left unconstrained
+        (street seed 12, RGB only: depth L1 1.28 -> 0.72 m with the time sweep, -> 0.61 m
+        with both)."""
+        if k in self.sweep_depth:
+            return self.sweep_depth[k]
+        sc, buf, rig = self.stereo.cfg, self.buf, self.seq.rig
+        sources = []
+        if sc.temporal_sources > 0 and self.metric_scale and k not in self.kept:
+            poses, window = buf.get_poses(), self.cfg.tracking.window
+            near = list(range(k - 1, max(k - 1 - window, -1), -1)) + list(range(k + 1, min(k + 1 + window, len(buf))))
+            unverified = set(self.lost) | set(self.kept)
+            sources = [j for j in near if j not in unverified and np.linalg.norm(poses[j][:3, 3] - poses[k][:3, 3]) >= sc.temporal_baseline][: sc.temporal_sources]
+        if not sources and not self.stereo.pairs:
             return None
-        T_w_c = [[poses[j] @ spec.T_b_c for spec in rig.cameras] for j in [k, *sources]]
-        views = []
-        for c in range(len(rig)):
-            src = [(buf.image(j, c), np.linalg.inv(T_w_c[n + 1][c]) @ T_w_c[0][c]) for n, j in enumerate(sources)]
-            views.append(self.stereo.time_sweep(c, buf.image(k, c), src)[0].astype(np.float16))
-        self.time_depth[k] = views
-        return views
+        views = [[] for _ in range(len(rig))]
+        for j in sources:
+            for c, spec in enumerate(rig.cameras):
+                views[c].append((buf.image(j, c), np.linalg.inv(poses[j] @ spec.T_b_c) @ poses[k] @ spec.T_b_c))
+        depth = self.stereo.temporal_depth(frame.index, frame.images, views if sources else [])
+        if sources:
+            self.sweep_depth[k] = depth = [d.astype(np.float16) for d in depth]
+        return depth
 
     def _measured_weight(self, keyframes) -> dict:
         """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or

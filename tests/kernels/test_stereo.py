@@ -82,7 +82,7 @@ def test_left_right_check_removes_mismatches():
 def test_temporal_sources_measure_the_far_scene_the_rig_baseline_cannot():
     """A 0.1 m rig pair resolves the far end of the room poorly; sweeping the same view
     against the camera 2 m further back (the rig's own travel, at known poses) measures it,
-    and the merge keeps, per pixel, the estimate with the most parallax."""
+    and the rig pair's depth stays where the time sweep has none."""
     rig = two_camera_rig("pinhole", baseline=0.1)
     T_w_b = np.eye(4)
     T_w_b[:3, :3] = yaw_pitch_roll(0.15)  # down the room: far pixels at 8-25 m
@@ -96,8 +96,8 @@ def test_temporal_sources_measure_the_far_scene_the_rig_baseline_cannot():
     T_src_ref = np.linalg.inv(T_back @ spec.T_b_c) @ (T_w_b @ spec.T_b_c)
     s = stereo.cfg.scale
     rig_d, rig_c = stereo.depth(0, images)
-    t_d, t_c = stereo.temporal_depth(0, images, [[(back[0], T_src_ref)], []])
-    t_d, t_c = upsample_nearest(t_d[0], spec, s), upsample_nearest(t_c[0], spec, s)
+    t_d = upsample_nearest(stereo.temporal_depth(0, images, [[(back[0], T_src_ref)], []])[0], spec, s)
+    t_c = (t_d > 0).astype(np.float32)
     gt = depths[0]
 
     far = gt > 8.0
@@ -114,6 +114,10 @@ def test_temporal_sources_measure_the_far_scene_the_rig_baseline_cannot():
     won_err, won_n = error(t_d, t_c, far & temporal)
     assert won_n > 0.2 * far.sum() and won_err < 0.1, (won_n, won_err)
     assert error(rig_d[0], rig_c[0], far & temporal & (rig_c[0] > 0))[0] > 1.5 * won_err
+    alone = upsample_nearest(stereo.time_sweep(0, images[0], [(back[0], T_src_ref)])[0], spec, s)
+    behind = (alone <= 0) & (rig_d[0] > 0)  # the time sweep has none there: the rig pair's depth
+    assert behind.sum() > 0 and np.array_equal(t_d[behind], rig_d[0][behind])
+    assert np.array_equal(t_d[alone > 0], alone[alone > 0])
 
 
 def grid_like(depth: np.ndarray, stride: int = 8, amplitude: float = 0.1) -> np.ndarray:
