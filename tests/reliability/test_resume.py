@@ -27,23 +27,36 @@ def small_config(keypoint_weight: float = 0.0):
     return cfg
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """``depth -> (data folder, uninterrupted run's folder, its metrics)``, each made once."""
+    made = {}
+
+    def get(depth):
+        if depth not in made:
+            root = tmp_path_factory.mktemp(f"resume_{depth}")
+            generate(root / "data", n_cameras=2, n_frames=7, seed=4, progress=False, depth=depth)
+            made[depth] = (root / "data", root / "full", run_sequence(root / "data", root / "full", small_config(1.0 if depth == "none" else 0.0), progress=False))
+        return made[depth]
+
+    return get
+
+
 @pytest.mark.parametrize("depth, stop", [("exact", 2), ("none", 1), ("none", 4)])
-def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(tmp_path, depth, stop):
+def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted, tmp_path, depth, stop):
     """With exact depth the mapping targets are the sensor's; without depth they are
     MCBA's estimates (and the correspondences were re-estimated along the way), which
     the checkpoint must carry, and so are the keypoint tracks in MCBA (on in that case);
     stopping after keyframe 0 interrupts the bootstrap, before anything was mapped; after
     keyframe 3, the mapped keyframes' time-baseline depth must come back as it was swept."""
-    data = tmp_path / "data"
+    data, full_out, full = uninterrupted(depth)
     weight = 1.0 if depth == "none" else 0.0
-    generate(data, n_cameras=2, n_frames=7, seed=4, progress=False, depth=depth)
-    full = run_sequence(data, tmp_path / "full", small_config(weight), progress=False)
     with pytest.raises(KeyboardInterrupt):
         run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, stop_after_keyframes=stop)
     assert (tmp_path / "cut" / "checkpoint.npz").is_file()
     assert not (tmp_path / "cut" / "trajectory.txt").exists()  # nothing final before the end
     resumed = run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
-    a = read_tum(tmp_path / "full" / "trajectory.txt")
+    a = read_tum(full_out / "trajectory.txt")
     b = read_tum(tmp_path / "cut" / "trajectory.txt")
     assert full["n_keyframes"] == resumed["n_keyframes"] >= 3
     atol = 1e-6

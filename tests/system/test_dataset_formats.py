@@ -79,18 +79,18 @@ def test_dataset_layouts_read_back_and_run(source, layout):
     assert m["ate_se3_rmse_m"] < limit * m["path_length_m"] and abs(m["sim3_scale"] - 1) < 0.005, m
 
 
-def test_bag_of_the_sequence_tracks_as_the_folder(source):
-    """The sequence written as a ROS 1 bag (mcgs-slam bag) and run with its rig gives the
-    trajectory of the folder it came from, run with the same depth (stereo)."""
-    from mcgs_warp.data.rosbag import write_bag
+def test_bag_of_the_sequence_runs_end_to_end(source):
+    """The sequence written as a ROS 1 bag (mcgs-slam bag) and run with its rig tracks at
+    metric scale from the rig stereo, as the folder does (the bag gives the folder's frames
+    bit for bit: tests/data/test_rosbag.py)."""
     from mcgs_warp.data import read_tum
+    from mcgs_warp.data.rosbag import write_bag
+    from mcgs_warp.eval.trajectory import evaluate
 
     root, seq = source
     bag, rig = write_bag(seq, root / "recording.bag")
-    folder = run_sequence(root / "ours", root / "run_folder", run_config(), depth="stereo", progress=False)
     m = run_sequence(bag, root / "run_bag", run_config(), rig=rig, progress=False)
-    assert m["depth_source"] == "stereo" and m["n_keyframes"] == folder["n_keyframes"] >= 3
-    a, b = read_tum(root / "run_folder" / "trajectory.txt"), read_tum(root / "run_bag" / "trajectory.txt")
-    np.testing.assert_allclose(b.timestamps, a.timestamps, atol=1e-9)
-    np.testing.assert_allclose(b.poses, a.poses, atol=1e-9)
-    assert folder["ate_se3_rmse_m"] < 0.003 * folder["path_length_m"]  # and that trajectory is right
+    assert m["depth_source"] == "stereo" and m["metric_scale"] is True and m["n_keyframes"] >= 3 and m["tracking_failures"] == 0, m
+    # the bag carries no ground truth: the folder's, against the bag run's trajectory
+    se3 = evaluate(read_tum(root / "run_bag" / "trajectory.txt"), seq.groundtruth, with_scale=False)[0]
+    assert se3.ate_rmse_m < 0.003 * m["path_length_m"], (se3.ate_rmse_m, m["path_length_m"])

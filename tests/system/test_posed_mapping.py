@@ -43,18 +43,24 @@ def test_mapping_from_the_true_poses_reproduces_the_scene(rgb_sequence, tmp_path
 
 
 def test_refine_poses_lets_the_refinement_move_a_perturbed_trajectory(rgb_sequence, tmp_path):
+    """``--refine-poses``: the offline refinement moves the given keyframe poses, towards the
+    truth (their keyframe ATE falls below the given poses' own); without it they stay as
+    given (the test above)."""
+    from mcgs_warp.eval.trajectory import evaluate
+
     seq = rgb_sequence
     gt = seq.groundtruth
     rng = np.random.default_rng(0)
     noisy = Trajectory(gt.timestamps, np.stack([T @ se3_exp(np.concatenate([rng.normal(0, 0.02, 3), rng.normal(0, 0.004, 3)])) if i else T for i, T in enumerate(gt.poses)]))
-    held = run_sequence(seq.root, tmp_path / "held", small_config(), progress=False, poses=noisy)
-    np.testing.assert_allclose(read_tum(tmp_path / "held" / "trajectory.txt").poses, invert(noisy.poses[0])[None] @ noisy.poses, atol=1e-5)
     cfg = small_config()
-    cfg.refinement.iterations = 200  # 20 steps move a keyframe by about 1 mm at lr_pose: too little to tell from the map's own change
+    cfg.refinement.iterations = 100  # 20 steps move a keyframe by about 1 mm at lr_pose, too little to tell from the map's own change; 100 up to 5 mm (keyframe ATE 1.92 -> 1.74 cm)
     refined = run_sequence(seq.root, tmp_path / "refined", cfg, progress=False, poses=noisy, refine_poses=True)
     moved = read_tum(tmp_path / "refined" / "trajectory.txt").poses
     assert np.abs(moved - invert(noisy.poses[0])[None] @ noisy.poses).max() > 1e-3
-    assert refined["ate_keyframes_se3_rmse_m"] < held["ate_keyframes_se3_rmse_m"], (refined["ate_keyframes_se3_rmse_m"], held["ate_keyframes_se3_rmse_m"])
+    keyframes = read_tum(tmp_path / "refined" / "keyframes.txt").timestamps
+    given = noisy.poses[[int(np.argmin(np.abs(gt.timestamps - t))) for t in keyframes]]
+    given_ate = evaluate(Trajectory(keyframes, given), gt, with_scale=False)[0].ate_rmse_m
+    assert len(keyframes) >= 3 and refined["ate_keyframes_se3_rmse_m"] < given_ate, (refined["ate_keyframes_se3_rmse_m"], given_ate)
 
 
 def test_given_poses_must_cover_the_sequence(rgb_sequence, tmp_path, capsys):

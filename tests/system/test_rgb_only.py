@@ -254,5 +254,4 @@ def test_sweeps_measure_what_mcba_leaves_unconstrained(tmp_path):
             err.append(np.abs(without[k][c][new] - gt[new]) / gt[new])
             guess.append(np.abs(fill_depth(mcba[k][c])[new] - gt[new]) / gt[new])
     err, guess = np.concatenate(err), np.concatenate(guess)
-
     assert err.size > 0.005 * pixels and np.median(err) < 0.1 and np.median(err) < 0.7 * np.median(guess), (err.size / pixels, np.median(err), np.median(guess))
