@@ -16,7 +16,8 @@ import numpy as np
 #: (2: the keyframe buffer's exposures, device priors and JDSA grids; 3: tracking health; 4: the mapping background;
 #: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows; 7: image motion between frames instead, keypoint tracks;
 #: 8: the keypoint odometry; 9: the background's cube map, sky masks; 10: MCBA's measured residual noise, kept keyframes;
-#: 11: the odometry's two-view frames; 12: their measured steps; 13: keyframes' time-baseline depth), so that
+#: 11: the odometry's two-view frames; 12: their measured steps; 13: keyframes' time-baseline depth;
+#: 14: keyframes' sweep depth, the rig pairs' behind the time sweep), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
 CHECKPOINT_FORMAT = 14
 
