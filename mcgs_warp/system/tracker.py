@@ -534,17 +534,20 @@ class Tracker:
         the rig pairs' depth. Sources: the nearest earlier keyframes whose poses tracking
         measured (neither lost nor kept), else later ones (keyframe 0 is mapped after
         keyframe 1), at the solved poses. Kept (float16) once a source is there; without
-        one, and in a monocular run (its scale drifts while kept depth would not) or for a
-        kept keyframe (its pose may be a prediction), the rig pairs' depth alone. A side
+        one, and for a kept keyframe (its pose may be a prediction), the rig pairs' depth
+        alone; None in a run without metric scale (its scale drifts while kept depth would
+        not). A side
         camera's near road at speed or a wall only one camera sees: DIS does not match such
         motion and no rig pair sees it, so the fill guessed its depth; and the pairs measure
         pixels MCBA left unconstrained (street seed 12, RGB only: depth L1 1.28 -> 0.72 m
         with the time sweep, -> 0.67 m with both)."""
         if k in self.sweep_depth:
             return self.sweep_depth[k]
+        if not self.metric_scale:
+            return None
         sc, buf, rig = self.stereo.cfg, self.buf, self.seq.rig
         sources = []
-        if sc.temporal_sources > 0 and self.metric_scale and k not in self.kept:
+        if sc.temporal_sources > 0 and k not in self.kept:
             poses, window = buf.get_poses(), self.cfg.tracking.window
             near = list(range(k - 1, max(k - 1 - window, -1), -1)) + list(range(k + 1, min(k + 1 + window, len(buf))))
             unverified = set(self.lost) | set(self.kept)

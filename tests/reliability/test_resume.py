@@ -48,7 +48,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     MCBA's estimates (and the correspondences were re-estimated along the way), which
     the checkpoint must carry, and so are the keypoint tracks in MCBA (on in that case);
     stopping after keyframe 0 interrupts the bootstrap, before anything was mapped; after
-    keyframe 3, the mapped keyframes' time-baseline depth must come back as it was swept."""
+    keyframe 3, the mapped keyframes' sweep depth must come back as it was swept."""
     data, full_out, full = uninterrupted(depth)
     weight = 1.0 if depth == "none" else 0.0
     with pytest.raises(KeyboardInterrupt):
