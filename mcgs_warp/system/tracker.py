@@ -536,11 +536,10 @@ class Tracker:
         keyframe 1), at the solved poses. Kept (float16) once a source is there; without
         one, and for a kept keyframe (its pose may be a prediction), the rig pairs' depth
         alone; None in a run without metric scale (its scale drifts while kept depth would
-        not). A side
-        camera's near road at speed or a wall only one camera sees: DIS does not match such
-        motion and no rig pair sees it, so the fill guessed its depth; and the pairs measure
-        pixels MCBA left unconstrained (street seed 12, RGB only: depth L1 1.28 -> 0.72 m
-        with the time sweep, -> 0.67 m with both)."""
+        not). A side camera's near road at speed or a wall only one camera sees: DIS does
+        not match such motion and no rig pair sees it, so the fill guessed its depth; and
+        the pairs measure pixels MCBA left unconstrained (street seed 12, RGB only: depth
+        L1 1.28 -> 0.72 m with the time sweep, -> 0.67 m with both)."""
         if k in self.sweep_depth:
             return self.sweep_depth[k]
         if not self.metric_scale:
