@@ -178,15 +178,14 @@ class GaussianMap:
         return report, np.concatenate(index)
 
     # ----------------------------------------------------------------------------------
-    def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0, fill: bool = False, fill_opacity: float = INITIAL_OPACITY, fill_guess=None) -> int:
+    def insert_from_depth(self, rig, T_w_b, images, depths, anchor: int, stride: int = 4, mask=None, max_depth: float = 50.0, fill: bool = False, fill_opacity: float = INITIAL_OPACITY) -> int:
         """Back-project every ``stride``-th pixel with depth of each camera (``mask[c]``
         [H,W] bool limits to unobserved pixels) into new Gaussians anchored to ``anchor``,
         sized by their footprint (module docstring). With ``fill``, the masked pixels
         without a depth target take the depth their neighbourhood has (:func:`fill_depth`):
         every pixel the mask allows gets a Gaussian, left to the photometric loss; those
         start at ``fill_opacity`` (faint: a guessed depth must not hide what other views
-        measured until the colour loss wants it). ``fill_guess[c]`` [H,W] (m, 0 = none): a
-        depth to take instead of the neighbourhood's where it is given (the map's own)."""
+        measured until the colour loss wants it)."""
         from ..ba.edges import unproject_pixels
 
         pts, cols, sizes, guessed = [], [], [], []
@@ -197,8 +196,6 @@ class GaussianMap:
             measured = (d > 0) & (d < max_depth)
             if fill:
                 d = fill_depth(np.where(measured, d, 0.0))
-                if fill_guess is not None and fill_guess[c] is not None:
-                    d = np.where(~measured & (fill_guess[c] > 0), fill_guess[c], d)
             o = stride // 2
             v, u = np.mgrid[o : spec.height : stride, o : spec.width : stride]
             z = d[v, u]

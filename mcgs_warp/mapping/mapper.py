@@ -19,11 +19,10 @@ Densify and prune every ``densify_every`` iterations: the map's gradient rules
 (floaters in front of the keyframes' depth, an on-screen size budget). New keyframes add
 Gaussians where the current map leaves the image uncovered (rendered alpha below
 ``new_alpha``) or renders behind the measured depth, also where no depth was measured
-(faint, at the depth the map renders there, else at their neighbourhood's: ``insert_fill``; such a
-Gaussian is marked guessed until a view's depth target agrees with it, and :meth:`Mapper.depth_confidence`
-renders the measured share per pixel), and, with
-``sky``, never on the view's sky (:mod:`.sky`), whose rendered
-alpha a cross-entropy term pushes to zero so the background shows there.
+(faint, at the depth of the keyframe's measured neighbourhood: ``insert_fill``; such a Gaussian
+is marked guessed until a view's depth target agrees with it, and :meth:`Mapper.depth_confidence`
+renders the measured share per pixel), and, with ``sky``, never on the view's sky (:mod:`.sky`),
+whose rendered alpha a cross-entropy term pushes to zero so the background shows there.
 """
 
 from __future__ import annotations
@@ -69,7 +68,7 @@ class MappingConfig:
     sky: bool = False  # segment each keyframe view's sky (mapping/sky.py): no Gaussian is seeded there, it gets no depth target, and the rendered alpha there is penalized so the background shows the sky
     lambda_sky: float = 1.0  # weight of the sky term: binary cross-entropy of the rendered alpha against 0 on the sky, -log(1 - alpha), averaged over a camera's pixels (kernels/mapping.py)
     insert_stride: int = 4  # px between new Gaussians
-    insert_fill: bool = True  # also seed Gaussians where no depth target is (uncovered, not sky), at the depth the map renders there, else their neighbourhood's plane (GaussianMap.insert_from_depth): the view is covered even where nothing measured depth
+    insert_fill: bool = True  # also seed Gaussians where no depth target is (uncovered, not sky), at the plane of the keyframe's measured neighbourhood (GaussianMap.insert_from_depth): the view is covered even where nothing measured depth
     fill_opacity: float = 0.1  # initial opacity of the Gaussians seeded at a guessed (filled) depth
     insert_max_depth: float = 100.0  # m: depth targets beyond this seed no Gaussian (the background stands for the far field)
     new_alpha: float = 0.5  # add Gaussians where rendered alpha is below this (or the render is floater_tolerance behind the measured depth)
@@ -197,7 +196,7 @@ class Mapper:
         if self.cfg.sky:
             self.sky[k] = [sky_mask(images[c], depths[c] if self.sky_depth_veto else None, far=self.cfg.insert_max_depth) for c in range(len(self.cams))]
         free = [np.ones((s.height, s.width), bool) if not self.cfg.sky else ~self.sky[k][c] for c, s in enumerate(self.buf.rig.cameras)]
-        mask, guess = free, None
+        mask = free
         if len(self.map):
             out = render(self.map.gaussians, self.views(k))
             alpha, rendered = out.alpha.numpy(), out.depth.numpy()
@@ -206,13 +205,8 @@ class Mapper:
             # that guessed-depth Gaussians already cover is never seeded where it was measured)
             behind = [(d > 0) & (rendered[c, : s.height, : s.width] > (1 + self.cfg.floater_tolerance) * d) if d is not None else np.zeros((s.height, s.width), bool) for c, (s, d) in enumerate(zip(self.buf.rig.cameras, depths))]
             mask = [((alpha[c, : s.height, : s.width] < self.cfg.new_alpha) | behind[c]) & free[c] for c, s in enumerate(self.buf.rig.cameras)]
-            # where the map already has (faint) Gaussians and nothing measured depth, a fill
-            # Gaussian takes the depth the map renders there: it thickens that surface instead of
-            # stacking this keyframe's own guess at another depth (which doubled the street's depth
-            # error on pixels covered either way)
-            guess = [np.where(alpha[c, : s.height, : s.width] >= 0.5 * self.cfg.fill_opacity, rendered[c, : s.height, : s.width], 0.0) for c, s in enumerate(self.buf.rig.cameras)]
         before = len(self.map)
-        added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity, fill_guess=guess)
+        added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity)
         self._remap_optimizer(np.concatenate([np.arange(before), -np.ones(added, int)]))
         return added
 

@@ -164,11 +164,12 @@ def test_sky_masks_survive_a_checkpoint(mapping_seq):
     np.testing.assert_array_equal(other.background.numpy(), m.background.numpy())
 
 
-def test_fill_thickens_the_maps_surface_instead_of_stacking_a_new_guess(mapping_seq):
-    """Fill Gaussians start faint (below ``new_alpha``), so a keyframe that sees the same
-    unmeasured region again seeds there again: at the depth the map renders, not at its own
-    neighbourhood guess (each keyframe stacking its guess at another depth doubled the
-    street's depth error on pixels that were covered either way)."""
+def test_fill_takes_the_keyframes_neighbourhood_not_a_far_layer_the_map_shows(mapping_seq):
+    """Where the map is thin (rendered alpha below ``new_alpha``) and nothing measured depth, a
+    fill Gaussian takes the plane of its keyframe's measured neighbourhood, not the depth the map
+    renders there. On the street the near road's holes showed Gaussians far behind it, and fill
+    that took the depth rendered there passed it on (street seed 12, RGB only: depth L1 0.668 m
+    with, 0.590 m without)."""
     from problems import Problem
 
     from mcgs_warp.kernels import render
@@ -184,21 +185,21 @@ def test_fill_thickens_the_maps_surface_instead_of_stacking_a_new_guess(mapping_
             out.append(d)
         return out
 
-    def top_depth():
-        out = render(m.map.gaussians, m.views(0))
-        return [out.depth.numpy()[c, 4 : s.height // 2 - 4, 4 : s.width - 4] for c, s in enumerate(m.buf.rig.cameras)]
-
-    m.add_keyframe(0, measured_below(1.0))
-    before = top_depth()
+    m.add_keyframe(0, measured_below(3.0))  # a faint guessed layer over the top half, 3x too far
     n = len(m.map)
-    # the same view again, its measured half now 1.5x as far: a neighbourhood guess would move
-    # the top half 1.5x away; the new fill thickens the surface the map has there
-    added = m.add_keyframe(0, measured_below(1.5))
-    assert added > 0.3 * n  # the faint top half is seeded again
-    after = top_depth()
-    for b, a in zip(before, after):
-        ok = (b > 0) & (a > 0)
-        assert np.median(np.abs(a[ok] / b[ok] - 1)) < 0.02, np.median(a[ok] / b[ok])
+    near = measured_below(1.0)
+    added = m.add_keyframe(0, near)
+    assert (~m.map.measured[n:]).sum() > 0.3 * n  # the faint top half is seeded again (guessed)
+    new = GaussianMap(m.buf.device)
+    new.set_numpy({key: v[n:] for key, v in m.map.to_numpy().items()})
+    depth = render(new.gaussians, m.views(0)).depth.numpy()
+    for c, s in enumerate(m.buf.rig.cameras):
+        top = (slice(4, s.height // 2 - 4), slice(4, s.width - 4))
+        rendered, plane = depth[c][top], fill_depth(near[c])[top]
+        ok = rendered > 0
+        assert ok.mean() > 0.9
+        # at the neighbourhood's plane (taking the map's depth put them at 3x it)
+        assert abs(np.median(rendered[ok] / plane[ok]) - 1) < 0.05, np.median(rendered[ok] / plane[ok])
 
 
 def test_a_surface_measured_in_front_of_the_map_is_seeded(mapping_seq):
