@@ -188,7 +188,7 @@ def test_fill_takes_the_keyframes_neighbourhood_not_a_far_layer_the_map_shows(ma
     m.add_keyframe(0, measured_below(3.0))  # a faint guessed layer over the top half, 3x too far
     n = len(m.map)
     near = measured_below(1.0)
-    added = m.add_keyframe(0, near)
+    m.add_keyframe(0, near)
     assert (~m.map.measured[n:]).sum() > 0.3 * n  # the faint top half is seeded again (guessed)
     new = GaussianMap(m.buf.device)
     new.set_numpy({key: v[n:] for key, v in m.map.to_numpy().items()})
