@@ -40,6 +40,8 @@ def _add_sequence_arguments(p) -> None:
     p.add_argument("--no-jdsa", action="store_true", help="disable joint depth-scale alignment")
     p.add_argument("--every", type=int, default=1, metavar="N",
                      help="keep every N-th frame (default 1: all): a high-rate camera at a lower rate; frame numbers in messages count the kept frames")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="run frames A to B of the sequence (B exclusive, either may be left out; default: all), before --every")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUT/checkpoint.npz")
     calib = p.add_mutually_exclusive_group()
     calib.add_argument("--rig", default=None, help="rig YAML (or Kalibr camchain): a ROS bag's calibration, each camera with its topic:; "
@@ -219,6 +221,7 @@ def parse_cameras(text):
 
 
 def cmd_run(args) -> int:
+    from .data.sequence import parse_frames
     from .system.run import run_sequence
 
     rig = args.rig
@@ -227,7 +230,7 @@ def cmd_run(args) -> int:
 
         rig_from_kalibr(args.from_kalibr)  # refuses a file that is not a camchain
         rig = args.from_kalibr  # run_sequence reads it again, and names it in its errors
-    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance, every=args.every,
+    metrics = run_sequence(args.data, args.out, args.config, cameras=parse_cameras(args.cameras), kitti_cameras=args.kitti_cameras, jdsa=False if args.no_jdsa else None, depth=args.depth, correspondences=args.correspondences, device=args.device, resume=args.resume, rig=rig, sync_tolerance=args.sync_tolerance, every=args.every, frames=parse_frames(args.frames),
                            poses=getattr(args, "poses", None), refine_poses=getattr(args, "refine_poses", False), segment=args.segment, waymo_cameras=args.waymo_cameras)
     print(f"{args.command} finished; outputs in {args.out}")
     _print_metrics(metrics)

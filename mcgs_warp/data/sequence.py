@@ -121,31 +121,53 @@ class CameraSubset(Sequence):
         return None if d is None else [d[c] for c in self.cameras]
 
 
-class EveryNth(Sequence):
-    """Every ``step``-th frame of a sequence (``run --every N``): a high-rate camera at a lower
-    rate, or a drive with frames dropped (tracking under larger motion). Frame ``k`` here is
-    frame ``k * step`` of ``seq``; the ground truth stays whole (evaluation matches by time)."""
+class FrameSelection(Sequence):
+    """Frames ``start, start + step, ...`` before ``stop`` of a sequence (``run --frames A:B``: a
+    part of a sequence; ``run --every N``: a high-rate camera at a lower rate, or a drive with
+    frames dropped, tracking under larger motion). Frame ``k`` here is frame ``start + k *
+    step`` of ``seq``; the ground truth stays whole (evaluation matches by time)."""
 
-    def __init__(self, seq: Sequence, step: int):
+    def __init__(self, seq: Sequence, step: int = 1, start: int = 0, stop: int | None = None):
         if isinstance(step, bool) or not isinstance(step, int) or step < 1:
             raise InputError(None, "--every", f"expected a whole number of frames of at least 1, got {step!r}")
-        if len(seq) and (len(seq) - 1) // step + 1 < 2:
-            raise InputError(None, "--every", f"keeps only 1 of the sequence's {len(seq)} frames: expected at most {max(len(seq) - 1, 1)}")
-        self.seq, self.step = seq, step
+        n = len(seq)
+        stop = n if stop is None else stop
+        if not 0 <= start < stop <= n:
+            raise InputError(None, "--frames", f"expected A:B with 0 <= A < B <= {n} (the sequence's {n} frames), got {start}:{stop}")
+        kept = (stop - start - 1) // step + 1
+        if kept < 2:
+            raise InputError(None, "--every" if step > 1 else "--frames", f"keeps only 1 of the {stop - start} frames {start}:{stop}: expected at least 2")
+        self.seq, self.step, self.start = seq, step, start
         self.rig = seq.rig
-        self.timestamps = np.asarray(seq.timestamps)[::step]
+        self.timestamps = np.asarray(seq.timestamps)[start:stop:step]
         self.groundtruth, self.name = seq.groundtruth, seq.name
         self.depth_exact, self.gravity = seq.depth_exact, seq.gravity
 
     def load_frame(self, k: int) -> Frame:
-        f = self.seq[k * self.step]
+        f = self.seq[self.start + k * self.step]
         return Frame(k, f.timestamp, f.images, f.depths)
 
     def depth_cameras(self) -> list[bool]:
         return self.seq.depth_cameras()
 
     def gt_depths(self, k: int) -> list | None:
-        return self.seq.gt_depths(k * self.step)
+        return self.seq.gt_depths(self.start + k * self.step)
+
+
+def parse_frames(text: str | None) -> tuple[int, int | None]:
+    """``--frames A:B`` as ``(A, B)``: frames A up to B (exclusive, as a Python slice); either may
+    be left out (``:B``, ``A:``); None gives ``(0, None)``, every frame."""
+    if text is None:
+        return 0, None
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        a = int(parts[0]) if parts[0].strip() else 0
+        b = int(parts[1]) if parts[1].strip() else None
+    except ValueError:
+        raise InputError(None, "--frames", f"expected A:B (whole frame numbers, B exclusive, e.g. 0:50), got {text!r}") from None
+    return a, b
 
 
 def read_timestamps(path) -> np.ndarray:

@@ -127,6 +127,111 @@ def triangulate(T_a_b: np.ndarray, bear_a: np.ndarray, bear_b: np.ndarray):
     return X, s, r
 
 
+#: Stereo matching along the epipolar line (:func:`epipolar_zncc`), as classical stereo VO does on
+#: rectified rows: an 11x11 patch, the match found within SEARCH px of the descriptor's, accepted at
+#: ZNCC >= ZNCC_MIN, on the line (the rows beside score lower: within half a pixel of it) and
+#: unambiguous (no other peak within UNIQUE px scores within ZNCC_MARGIN of it)
+PATCH, SEARCH, UNIQUE, ZNCC_MIN, ZNCC_MARGIN = 5, 3, 12, 0.8, 0.05
+
+
+def epipolar_directions(cam_a, cam_b, T_a_b: np.ndarray, bear_a: np.ndarray, bear_b: np.ndarray):
+    """Where matches lie and which way their epipolar lines run: for bearings ``bear_a`` and
+    ``bear_b`` [P,3] of matched keypoints (views a and b, ``T_a_b`` [4,4]), the pixel in b of
+    the point on a's ray at the triangulated range (on b's epipolar line, any camera model),
+    the lines' unit directions in a and in b at the match ([P,2] each, the image motion of one
+    3D displacement within the epipolar plane, so both point the same way) and which are
+    usable ([P] bool: in front of both cameras and projecting)."""
+    from ..ba.edges import project_points
+
+    R, t = T_a_b[:3, :3], T_a_b[:3, 3]
+    _X, s, r = triangulate(T_a_b, bear_a, bear_b)
+    rb = bear_b @ R.T  # b's bearings in frame a
+    n = np.cross(bear_a, t)
+    m = np.cross(n, bear_a / np.linalg.norm(bear_a, axis=1, keepdims=True) + rb / np.linalg.norm(rb, axis=1, keepdims=True))  # in the plane, across both rays
+    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
+    Xa = np.where((s > 0)[:, None], s[:, None], 1.0) * bear_a
+    Xb = (Xa - t) @ R
+    _, ok_a, Ja = project_points(cam_a, Xa, jacobian=True)
+    q_b, ok_b, Jb = project_points(cam_b, Xb, jacobian=True)
+    e_a, e_b = np.einsum("pij,pj->pi", Ja, m), np.einsum("pij,pj->pi", Jb, m @ R)
+    na, nb = np.linalg.norm(e_a, axis=1), np.linalg.norm(e_b, axis=1)
+    ok = ok_a & ok_b & (s > 0) & (r > 0) & (na > 1e-9) & (nb > 1e-9) & np.isfinite(s)
+    return q_b, e_a / np.maximum(na, 1e-12)[:, None], e_b / np.maximum(nb, 1e-12)[:, None], ok
+
+
+def _sample(grey: np.ndarray, centre: np.ndarray, e: np.ndarray, half_x: int, half_y: int) -> np.ndarray:
+    """Patches [P, 2 half_y + 1, 2 half_x + 1] of ``grey`` (float32) around ``centre`` [P,2],
+    their x axis along ``e`` [P,2] and y axis at +90 degrees of it, bilinear (edges replicated)."""
+    import cv2
+
+    xs = np.arange(-half_x, half_x + 1, dtype=np.float64)
+    ys = np.arange(-half_y, half_y + 1, dtype=np.float64)
+    nrm = np.stack([-e[:, 1], e[:, 0]], 1)
+    g = centre[:, None, None, :] + xs[None, None, :, None] * e[:, None, None, :] + ys[None, :, None, None] * nrm[:, None, None, :]
+    P, h, w = g.shape[:3]
+    mx = np.ascontiguousarray(g[..., 0].reshape(P * h, w), np.float32)
+    my = np.ascontiguousarray(g[..., 1].reshape(P * h, w), np.float32)
+    return cv2.remap(grey, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(P, h, w)
+
+
+def epipolar_zncc(grey_a: np.ndarray, grey_b: np.ndarray, va: "ViewKeypoints", vb: "ViewKeypoints", ia, ib, T_a_b: np.ndarray, cam_a, cam_b):
+    """Sub-pixel positions [P,2] in view b of keypoints ``ia`` of view a, found along their
+    epipolar lines near their descriptor matches ``ib``, and which were found [P] bool.
+
+    Each keypoint's patch (``PATCH``, sampled at its sub-pixel position, its x axis along the
+    keypoint's epipolar line in a) is scored by ZNCC against b's image along b's line in
+    whole-pixel steps (from a's position on a rectified pair, so that patch and line are
+    interpolated at the same phase) and on the rows one pixel either side of the line. The
+    peak within ``SEARCH`` px of the descriptor match, refined by a parabola, is kept where it
+    scores at least ``ZNCC_MIN``, beats the rows beside it (the match lies within half a
+    pixel of the line) and no other peak within ``UNIQUE`` px comes within ``ZNCC_MARGIN`` of
+    it. Only the position along the line is measured, on a rectified pair the disparity, as
+    classical stereo VO does: a match free to move across the line slides along slanted edges,
+    and ZNCC, unlike brightness constancy, is blind to the cameras' different exposures."""
+    ia, ib = np.asarray(ia), np.asarray(ib)
+    P = len(ia)
+    out, found = np.zeros((P, 2)), np.zeros(P, bool)
+    if not P:
+        return out, found
+    q_b, e_a, e_b, ok = epipolar_directions(cam_a, cam_b, T_a_b, va.bearings[ia], vb.bearings[ib])
+    p_a = va.uv[ia]
+    # centre b's strip on the line at its descriptor match, in whole steps from a's position along the line
+    # (a rectified pair: an integer disparity, so patch and strip are interpolated at the same phase)
+    along = np.einsum("pi,pi->p", vb.uv[ib] - q_b, e_b)
+    q = q_b + along[:, None] * e_b
+    off = np.einsum("pi,pi->p", q - p_a, e_b)
+    c_b = q + (np.rint(off) - off)[:, None] * e_b
+    w, L = PATCH, PATCH + UNIQUE
+    T = _sample(grey_a, p_a, e_a, w, w).reshape(P, -1).astype(np.float64)
+    S = _sample(grey_b, c_b, e_b, L, w + 1).astype(np.float64)  # [P, 2w+3, 2L+1]
+    T -= T.mean(1, keepdims=True)
+    tn = np.linalg.norm(T, axis=1)
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    win = sliding_window_view(S, (2 * w + 1, 2 * w + 1), axis=(1, 2)).reshape(P, 3, 2 * UNIQUE + 1, -1)  # [P, 3 rows, 2U+1 shifts, patch]
+    wm = win.mean(-1)
+    num = np.einsum("prsk,pk->prs", win, T)
+    den = np.sqrt(np.maximum((win * win).sum(-1) - win.shape[-1] * wm * wm, 0.0)) * tn[:, None, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        C = np.where(den > 1e-6, num / den, -1.0)
+    mid = C[:, 1]  # [P, 2U+1]
+    lo, hi = UNIQUE - SEARCH, UNIQUE + SEARCH
+    j = lo + np.argmax(mid[:, lo : hi + 1], axis=1)
+    rows = np.arange(P)
+    best = mid[rows, j]
+    on_line = (C[rows, 0, j] < best) & (C[rows, 2, j] < best)
+    near = np.abs(np.arange(2 * UNIQUE + 1)[None] - j[:, None]) <= 2
+    second = np.where(near, -1.0, mid).max(1)
+    good = ok & (tn > 1e-3) & (best >= ZNCC_MIN) & on_line & (second < best - ZNCC_MARGIN) & (j > lo) & (j < hi)
+    a_, c_ = mid[rows, np.maximum(j - 1, 0)], mid[rows, np.minimum(j + 1, 2 * UNIQUE)]
+    curv = a_ - 2 * best + c_
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(curv < 0, 0.5 * (a_ - c_) / curv, 0.0)
+    out = c_b + (j - UNIQUE + frac)[:, None] * e_b
+    found = good & np.isfinite(out).all(1)
+    return out, found
+
+
 class KeypointDetector:
     """SIFT keypoints of every view of a rig frame, with depth from sensor depth where the
     frame has it, else from the rig's overlapping camera pairs (``pairs``: (a, b) camera
@@ -142,31 +247,26 @@ class KeypointDetector:
         self._cams = [c.warp_camera() for c in rig.cameras]
         self._unproject = unproject_pixels
 
-    def _refined(self, a: int, b: int, ia, ib, views) -> np.ndarray:
-        """Bearings in view b of keypoints ``ia`` of view a, their match ``ib`` refined to a
-        sub-pixel position by pyramidal Lucas-Kanade of a's patch (two independently detected
-        keypoints each carry ~0.3 px of noise, which is 3 % of depth at 10 px of disparity)."""
-        import cv2
-
-        bb = views[b].bearings[ib]
+    def _refined(self, a: int, b: int, ia, ib, views, T_a_b: np.ndarray):
+        """Bearings in view b of keypoints ``ia`` of view a, each found along its epipolar line
+        near its descriptor match ``ib`` (:func:`epipolar_zncc`), and which were found
+        (``[P]`` bool). Two independently detected keypoints each carry ~0.3 px of noise (3 % of
+        depth at 10 px of disparity), and a match refined with both coordinates free slides
+        along slanted edges: on KITTI's rectified pair 2-D Lucas-Kanade made disparities
+        0.05 px short (a path 0.3 % long), so only the position along the line is measured."""
+        vb = views[b]
         if not len(ia):
-            return bb
-        p0 = views[a].uv[ia].astype(np.float32).reshape(-1, 1, 2)
-        p1 = views[b].uv[ib].astype(np.float32).reshape(-1, 1, 2)
-        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
-        p1r, st, _err = cv2.calcOpticalFlowPyrLK(self._grey[a], self._grey[b], p0, p1.copy(), winSize=(11, 11), maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        p1r = p1r.reshape(-1, 2).astype(np.float64)
-        moved = np.linalg.norm(p1r - views[b].uv[ib], axis=1)
-        good = (st.ravel() == 1) & (moved < 1.5)
-        if good.any():
-            rays = self._unproject(self._cams[b], p1r[good])
-            bb = bb.copy()
-            bb[good] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-            vb = views[b]  # the refined position is the keypoint's (it is where a's patch is) unless its point is already on its old ray (sensor depth)
-            move = ~vb.has_depth[ib[good]]
-            idx = ib[good][move]
-            vb.uv[idx], vb.rays[idx], vb.bearings[idx] = p1r[good][move], rays[move], bb[good][move]
-        return bb
+            return vb.bearings[ib], np.zeros(0, bool)
+        uv_b, ok = epipolar_zncc(self._grey_f[a], self._grey_f[b], views[a], vb, ia, ib, T_a_b, self._cams[a], self._cams[b])
+        bb = vb.bearings[ib].copy()
+        if ok.any():
+            rays = self._unproject(self._cams[b], uv_b[ok])
+            bb[ok] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+            # the found position is the keypoint's (it is where a's patch is) unless its point is already on its old ray (sensor depth)
+            move = ~vb.has_depth[ib[ok]]
+            idx = ib[ok][move]
+            vb.uv[idx], vb.rays[idx], vb.bearings[idx] = uv_b[ok][move], rays[move], bb[ok][move]
+        return bb, ok
 
     def detect(self, images, depths=None) -> list[ViewKeypoints]:
         """Keypoints [C] of one rig frame (``images`` [C] of [H,W,3] in [0,1]; ``depths`` [C]
@@ -175,8 +275,9 @@ class KeypointDetector:
 
         sift = cv2.SIFT_create(nfeatures=self.features, contrastThreshold=0.02)
         views = []
-        self._grey = [to_grey8(img) for img in images]
-        for c, img in enumerate(self._grey):
+        grey = [to_grey8(img) for img in images]
+        self._grey_f = [img.astype(np.float32) for img in grey]
+        for c, img in enumerate(grey):
             kps, desc = sift.detectAndCompute(img, None)
             uv = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
             desc = compact_descriptors(desc)
@@ -211,10 +312,11 @@ class KeypointDetector:
         band = np.abs(n @ (vb.bearings @ T_a_b[:3, :3].T).T) < self.epipolar_rad  # [Ma,Mb]
         m = masked_matches(va.desc, vb.desc, band, self.ratio)
         ia, ib = m[:, 0], m[:, 1]
-        ba, bb = va.bearings[ia], self._refined(a, b, ia, ib, views)
+        bb, found = self._refined(a, b, ia, ib, views, T_a_b)
+        ba = va.bearings[ia]
         X, s, r = triangulate(T_a_b, ba, bb)
         rng = np.linalg.norm(X, axis=1)
-        ok = (s > 0) & (r > 0) & (rng < self.max_baselines * baseline) & np.isfinite(rng)
+        ok = found & (s > 0) & (r > 0) & (rng < self.max_baselines * baseline) & np.isfinite(rng)
         # each view keeps the point on its own ray, at the triangulated range
         for view, idx, P in ((va, ia, s[:, None] * ba), (vb, ib, r[:, None] * bb)):
             free = ok & ~view.has_depth[idx]

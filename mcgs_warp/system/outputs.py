@@ -173,8 +173,38 @@ def scale_warning(metric_scale: bool, sim3_scale: float) -> str | None:
             f"check the depth unit (our depth PNGs: millimetres; TUM's: 1/5000 m) and the rig's baselines (T_b_c, m)")
 
 
+class RelativeErrors:
+    """Relative depth errors |d - d_true| / d_true of many pixels as a histogram (0.05 % bins up
+    to 200 %, one bin beyond): their median without holding every pixel of every view."""
+
+    BIN, N = 5e-4, 4000
+
+    def __init__(self):
+        self.counts = np.zeros(self.N + 1, np.int64)
+
+    def add(self, rel: np.ndarray) -> None:
+        self.counts += np.bincount(np.minimum((rel / self.BIN).astype(np.int64), self.N), minlength=self.N + 1)
+
+    def median(self) -> float | None:
+        n = int(self.counts.sum())
+        if not n:
+            return None
+        i = int(np.searchsorted(np.cumsum(self.counts), (n + 1) / 2))
+        return round((i + 0.5) * self.BIN, 4) if i < self.N else float("inf")
+
+
 def _quantiles(values) -> dict | None:
     return {"min": round(float(np.min(values)), 4), "median": round(float(np.median(values)), 4)} if len(values) else None
+
+
+def odometry_trajectory(slam) -> Trajectory | None:
+    """The keypoint odometry alone (rig body, its own world frame: the first frame's pose), every
+    frame it placed; None without it (a run from given poses, keypoints off)."""
+    odo = slam.tracker.odometry
+    if odo is None or not odo.poses:
+        return None
+    fs = sorted(odo.poses)
+    return Trajectory(np.asarray(slam.seq.timestamps, np.float64)[fs], np.stack([odo.poses[f] for f in fs]))
 
 
 def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
@@ -193,6 +223,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     write_ply(out / "map.ply", params)
     save_rig(rig, out / "rig.yaml")
     write_tum(out / "keyframes.txt", Trajectory(np.array(buf.timestamps), kf_poses))
+    odometry = odometry_trajectory(slam)
+    if odometry is not None:
+        write_tum(out / "trajectory_odometry.txt", odometry)
 
     # Image metrics over every keyframe view; a few renders beside their inputs.
     n_render = slam.cfg.output.renders
@@ -202,6 +235,8 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     frames: dict = {}
     covers = [[] for _ in rig.cameras]  # per camera: share of each keyframe view the map covers
     measured_px = [[0, 0] for _ in rig.cameras]  # per camera: pixels with a median depth, of which measured
+    rel_all, rel_measured = [RelativeErrors() for _ in rig.cameras], [RelativeErrors() for _ in rig.cameras]  # per camera: relative depth errors on the exact-depth pixels the render covers, and on those marked measured
+    true_px = [[0, 0] for _ in rig.cameras]  # per camera: exact-depth pixels, of which the render covers
     for k, c, col, dep, mixed, alpha, level, img, fidx in keyframe_views(slam):
         covers[c].append(float(np.mean(alpha > 0.5)))
         measured = level == MEASURED
@@ -218,6 +253,11 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         if sensor is not None:
             ok = (sensor > 0) & (dep > 0)
             covered, with_depth = covered + int(ok.sum()), with_depth + int((sensor > 0).sum())
+            true_px[c][0] += int((sensor > 0).sum())
+            true_px[c][1] += int(ok.sum())
+            rel = np.abs(dep[ok] - sensor[ok]) / sensor[ok]
+            rel_all[c].add(rel)
+            rel_measured[c].add(rel[measured[ok]])
             if ok.any():
                 err = np.abs(dep[ok] - sensor[ok])
                 depth_err.append(float(err.mean()))
@@ -258,6 +298,8 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "depth_l1_filled_m": _mean_of(by_level[GUESSED]),  # ... and guessed (filled); pixel-weighted, unlike depth_l1_m's mean over views
         "depth_measured_fraction": by_level[MEASURED][1] / scored if (scored := sum(v[1] for v in by_level.values())) else None,  # share of the scored pixels marked measured
         "measured_fraction_per_camera": {spec.name: measured_px[c][1] / measured_px[c][0] if measured_px[c][0] else None for c, spec in enumerate(rig.cameras)},  # per camera: share of the pixels with a rendered depth that the confidence marks measured (needs no ground truth)
+        # per camera against exact depth (a LiDAR's points, a renderer's depth) where the sequence has it: the median relative error of the rendered median depth, the share of exact-depth pixels it covers, and the median on the pixels the confidence marks measured
+        "depth_vs_exact_per_camera": {spec.name: {"median_rel": rel_all[c].median(), "coverage": true_px[c][1] / true_px[c][0], "median_rel_measured": rel_measured[c].median()} for c, spec in enumerate(rig.cameras) if true_px[c][0]} or None,
         "map_coverage_per_camera": {spec.name: _quantiles(covers[c]) for c, spec in enumerate(rig.cameras)},  # share of a keyframe view's pixels the map covers (rendered alpha > 0.5): min and median over keyframes
         "depth_source": slam.tracker.prior.name,
         "prior_l1_m": prior_l1,  # the inexact prior against exact depth, before JDSA ...
@@ -300,11 +342,9 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         if len(buf) >= 3:  # keyframes only: the poses the run estimated, none interpolated
             kf_traj = Trajectory(np.array(buf.timestamps), kf_poses)
             metrics.update({"ate_keyframes_rmse_m": evaluate(kf_traj, seq.groundtruth)[0].ate_rmse_m, "ate_keyframes_se3_rmse_m": evaluate(kf_traj, seq.groundtruth, with_scale=False)[0].ate_rmse_m})
-        odo = slam.tracker.odometry
-        if odo is not None and len(odo.poses) >= 3:  # the keypoint odometry alone, every frame it placed: the sparse core the dense system must not fall behind
-            fs = sorted(odo.poses)
+        if odometry is not None and len(odometry) >= 3:  # the keypoint odometry alone, every frame it placed: the sparse core the dense system must not fall behind
             try:
-                ot, _, _ = evaluate(Trajectory(np.asarray(seq.timestamps, np.float64)[fs], np.stack([odo.poses[f] for f in fs])), seq.groundtruth, with_scale=False)
+                ot, _, _ = evaluate(odometry, seq.groundtruth, with_scale=False)
                 metrics.update({"ate_odometry_se3_rmse_m": ot.ate_rmse_m, "ate_odometry_se3_percent_of_path": 100.0 * ot.ate_rmse_m / max(tm.path_length_m, 1e-12)})
             except InputError:
                 pass  # too few of its frames match the ground truth

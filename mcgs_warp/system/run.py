@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..data import open_sequence
 from ..data.resample import at_processing_resolution
-from ..data.sequence import CameraSubset, EveryNth
+from ..data.sequence import CameraSubset, FrameSelection
 from ..rig import Rig, load_any_rig
 from .config import RunConfig, load_run_config
 from .outputs import write_outputs
@@ -17,12 +17,12 @@ from .slam import SLAM, Progress
 CHECKPOINT = "checkpoint.npz"
 
 
-def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None, rig=None, sync_tolerance: float | None = None, every: int = 1, poses=None, refine_poses: bool = False, segment: str | None = None, waymo_cameras: str = "front3") -> dict:
+def run_sequence(data, out, config: RunConfig | str | Path | None = None, cameras=None, kitti_cameras: str = "grey", jdsa: bool | None = None, depth: str | None = None, correspondences: str | None = None, device=None, progress: bool = True, resume: bool = False, stop_after_keyframes: int | None = None, rig=None, sync_tolerance: float | None = None, every: int = 1, frames: tuple[int, int | None] = (0, None), poses=None, refine_poses: bool = False, segment: str | None = None, waymo_cameras: str = "front3") -> dict:
     """Run SLAM on the sequence ``data`` (a folder or a ROS bag) and write everything to
     ``out``; returns the metrics. ``rig`` (a :class:`Rig`, or the path of a rig YAML or of a
     Kalibr camchain) is a bag's calibration, or replaces a folder's. The online state is
     checkpointed to ``out/checkpoint.npz`` after every keyframe; ``resume`` continues an
-    interrupted run from it. ``every`` keeps every N-th frame (:class:`EveryNth`). ``poses``
+    interrupted run from it. ``frames`` ``(A, B)`` keeps frames A to B (exclusive; B None: to the end) and of them ``every`` every N-th (:class:`FrameSelection`). ``poses``
     (a TUM file of the rig body's poses, a :class:`Trajectory`, or ``"groundtruth"``) maps from
     given poses instead of tracking (:class:`~mcgs_warp.system.posed_mapping.PosedMapping`);
     ``refine_poses`` lets the refinement adjust them. ``segment`` and ``waymo_cameras`` go to
@@ -42,8 +42,8 @@ def run_sequence(data, out, config: RunConfig | str | Path | None = None, camera
     seq = open_sequence(data, rig=rig, kitti_cameras=kitti_cameras, sync_tolerance=sync_tolerance, rig_source=rig_source, segment=segment, waymo_cameras=waymo_cameras)
     if cameras is not None:
         seq = CameraSubset(seq, cameras)
-    if every != 1:
-        seq = EveryNth(seq, every)
+    if every != 1 or tuple(frames) != (0, None):
+        seq = FrameSelection(seq, every, *frames)
     seq = at_processing_resolution(seq, cfg.tracking.max_width)
     Path(out).mkdir(parents=True, exist_ok=True)
     if poses is None:

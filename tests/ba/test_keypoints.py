@@ -186,3 +186,68 @@ def test_triangulate_takes_one_pose_per_pair():
         Xp, sp, rp = triangulate(T[p], a[p : p + 1], b[p : p + 1])
         np.testing.assert_allclose(X[p], Xp[0], atol=1e-12)
         np.testing.assert_allclose([s[p], r[p]], [sp[0], rp[0]], atol=1e-12)
+
+
+def textured_stereo_pair(seed: int, disparities, W: int = 1241, H: int = 376):
+    """A rectified pair of fronto-parallel textured planes in vertical bands, each at its own
+    disparity (full-resolution px; nearer bands occlude farther ones in the right view): grey
+    left and right images [H,W] in [0,1] and the band edges (left columns). The texture is
+    band-limited noise with slanted strokes (where a match free to move vertically slides
+    along the edge), shifted exactly by the Fourier shift theorem."""
+    rng = np.random.default_rng(seed)
+    pad = 256
+    Wf = W + 2 * pad
+    ky, kx = np.fft.fftfreq(H)[:, None], np.fft.rfftfreq(Wf)[None]
+    edges = np.linspace(0, W, len(disparities) + 1).astype(int)
+    left, right = np.zeros((H, W)), np.zeros((H, W))
+    u = np.arange(W)
+    for k in np.argsort(disparities):  # far first: nearer bands paint over them
+        d = disparities[k]
+        th = rng.uniform(0, np.pi)
+        kr, kt = kx * np.cos(th) + ky * np.sin(th), -kx * np.sin(th) + ky * np.cos(th)
+        F = np.fft.rfft2(rng.normal(size=(H, Wf))) * (np.exp(-((kr / 0.12) ** 2) - (kt / 0.02) ** 2) + 0.5 * np.exp(-(kx**2 + ky**2) / 0.08**2))
+        f = np.fft.irfft2(F, s=(H, Wf))
+        shifted = np.fft.irfft2(F * np.exp(2j * np.pi * kx * d), s=(H, Wf))  # shifted(x) = f(x + d)
+        x0, x1 = edges[k], edges[k + 1]
+        left[:, x0:x1] = f[:, pad + x0 : pad + x1] / f.std()
+        seen = (u + d >= x0) & (u + d < x1)
+        right[:, seen] = shifted[:, pad + u[seen]] / f.std()
+    return np.clip(0.5 + 0.15 * left, 0, 1), np.clip(0.5 + 0.15 * right, 0, 1), edges
+
+
+def test_rectified_stereo_keypoint_disparity_is_unbiased_at_kittis_geometry():
+    """KITTI's rectified grey pair (1241x376, 0.537 m), resampled to 640 px as runs resample it,
+    textured planes at 10-50 m with exact disparities and the right camera 15 % brighter (two
+    cameras' exposures differ): the keypoints' stereo disparity is unbiased within 0.02 px
+    and hardly ever grossly wrong. Stereo matches refined with Lucas-Kanade in both
+    coordinates (brightness constancy, the match free to slide along slanted edges) were
+    +0.031 px off on average here, 12 % of them by more than half a pixel; on the real
+    straight KITTI drive that made the path 0.8 % long."""
+    import cv2
+
+    from mcgs_warp.data.resample import resampled_camera
+
+    fx, b = 718.856, 0.5372
+    disparities = np.array([fx * b / z for z in (10.0, 14.0, 18.0, 22.0, 26.0, 32.0, 40.0, 50.0)])
+    base = CameraSpec("cam0", "pinhole", 1241, 376, (fx, fx, 607.1928, 185.2157), (), np.eye(4))
+    right_T = np.eye(4)
+    right_T[0, 3] = b
+    w, h = 640, round(376 * 640 / 1241)
+    rig = Rig([resampled_camera(base, w, h), resampled_camera(CameraSpec("cam1", "pinhole", 1241, 376, base.intrinsics, (), right_T), w, h)])
+    s = w / 1241
+    errs = []
+    for seed in range(3):
+        left, right, edges = textured_stereo_pair(seed, disparities)
+        right = np.clip(1.15 * right, 0, 1)
+        images = [cv2.resize(np.repeat(x[..., None], 3, 2).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) for x in (left, right)]
+        v = KeypointDetector(rig, [(0, 1)]).detect(images)[0]
+        has = v.has_depth
+        measured = rig.cameras[0].intrinsics[0] * b / v.points[has, 2]
+        u_full = (v.uv[has, 0] + 0.5) / s - 0.5
+        band = np.clip(np.searchsorted(edges, u_full, side="right") - 1, 0, len(disparities) - 1)
+        inside = np.minimum(u_full - edges[band], edges[band + 1] - u_full) > 30  # away from occluding band edges
+        errs.append(measured[inside] - disparities[band[inside]] * s)
+    errs = np.concatenate(errs)
+    assert len(errs) > 400, len(errs)
+    assert abs(errs.mean()) <= 0.02, errs.mean()
+    assert np.mean(np.abs(errs) > 0.5) < 0.01

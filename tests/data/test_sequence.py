@@ -153,12 +153,12 @@ def test_every_nth_frame(tmp_path):
     """``run --every N``: frame k is frame k*N of the folder (images, depth, time), the ground
     truth stays whole, and a step that keeps fewer than two frames or is not a whole number
     is refused naming --every."""
-    from mcgs_warp.data.sequence import EveryNth
+    from mcgs_warp.data.sequence import FrameSelection
 
     rng = np.random.default_rng(0)
     write_sequence(tmp_path / "seq", rng, n=7)
     seq = open_sequence(tmp_path / "seq")
-    sub = EveryNth(seq, 3)
+    sub = FrameSelection(seq, 3)
     assert len(sub) == 3
     np.testing.assert_array_equal(sub.timestamps, seq.timestamps[[0, 3, 6]])
     f = sub[2]
@@ -168,4 +168,29 @@ def test_every_nth_frame(tmp_path):
     assert sub.groundtruth is seq.groundtruth and sub.depth_cameras() == seq.depth_cameras()
     for bad in (0, 7, 2.5):
         with pytest.raises(InputError, match="--every"):
-            EveryNth(seq, bad)
+            FrameSelection(seq, bad)
+
+
+def test_a_part_of_a_sequence(tmp_path):
+    """``run --frames A:B``: frames A to B-1 of the folder, numbered from 0, then ``--every`` of
+    them; the ground truth and the exact depth stay the folder's frames'. A range outside the
+    sequence, with fewer than two frames, or not A:B is refused naming --frames."""
+    from mcgs_warp.data.sequence import FrameSelection, parse_frames
+
+    rng = np.random.default_rng(1)
+    write_sequence(tmp_path / "seq", rng, n=9)
+    seq = open_sequence(tmp_path / "seq")
+    assert parse_frames("2:8") == (2, 8) and parse_frames("3:") == (3, None) and parse_frames(":4") == (0, 4) and parse_frames(None) == (0, None)
+    sub = FrameSelection(seq, 2, *parse_frames("2:8"))
+    np.testing.assert_array_equal(sub.timestamps, seq.timestamps[[2, 4, 6]])
+    f = sub[1]
+    assert f.index == 1 and f.timestamp == seq.timestamps[4]
+    np.testing.assert_array_equal(f.images[1], seq[4].images[1])
+    assert sub.groundtruth is seq.groundtruth
+    assert len(FrameSelection(seq, 1, *parse_frames("5:"))) == 4
+    for bad in ("8:12", "4:4", "6:5", "5:6"):
+        with pytest.raises(InputError, match="--frames"):
+            FrameSelection(seq, 1, *parse_frames(bad))
+    for bad in ("1-5", "a:b", "1:2:3"):
+        with pytest.raises(InputError, match="--frames"):
+            parse_frames(bad)

@@ -22,3 +22,31 @@ def test_no_benchmark_shadows_a_module_it_imports():
 def test_benchmark_prints_its_usage(script):
     res = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0 and "usage" in res.stdout, res.stderr[-2000:]
+
+
+def test_real_benchmark_scores_a_scale_bias_in_every_segment():
+    """benchmarks/real.py's scoring: an estimate 1 % long (a stereo scale bias) shows as path ratio
+    1.01 in every 10-frame segment and Sim(3) scale 1/1.01, with zero Sim(3) ATE; its table
+    prints a skipped row with the reason."""
+    import importlib.util
+
+    import numpy as np
+
+    from mcgs_warp.data.trajectory import Trajectory
+    from mcgs_warp.geometry import se3_exp
+
+    spec = importlib.util.spec_from_file_location("real_benchmark", Path(__file__).resolve().parents[2] / "benchmarks" / "real.py")
+    real = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(real)
+    rng = np.random.default_rng(0)
+    T = [np.eye(4)]
+    for _ in range(34):
+        T.append(T[-1] @ se3_exp(np.r_[0.0, 0.0, 1.2, rng.normal(0, 0.02, 3)]))
+    gt = Trajectory(np.arange(35) * 0.1, np.stack(T))
+    est = Trajectory(gt.timestamps, gt.poses.copy())
+    est.poses[:, :3, 3] *= 1.01
+    f = real.figures(est, gt)
+    assert abs(f["path_ratio"] - 1.01) < 1e-9 and len(f["segments"]) == 4 and np.allclose(f["segments"], 1.01, atol=1e-4)
+    assert abs(f["scale"] - 1 / 1.01) < 1e-9 and f["sim3_m"] < 1e-9 and f["se3_m"] > 0.05
+    text = real.table([{"sequence": "s", "every": 3, "frames": 1, "method": "ours", "skipped": "every 3 keeps 1 of its 3 frames"}, {"sequence": "s", "every": 1, "method": "odometry", **f}])
+    assert "every 3 keeps 1" in text and "1.0100-1.0100" in text

@@ -96,3 +96,20 @@ def test_a_run_with_too_few_ground_truth_poses_still_writes_its_metrics(tmp_path
     assert res.stderr.count("trajectory not evaluated: only 2 estimated poses match") == 1, res.stderr
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["ate_rmse_m"] is None and "ate_se3_rmse_m" not in m and m["psnr_db"] > 10 and m["n_frames"] == 3
+
+
+def test_relative_errors_median_is_the_pixels_median_within_a_bin():
+    """The per-camera depth metric's histogram gives the median of the pixels it was fed
+    (in parts, as keyframe views add them) within its 0.05 % bins; beyond 200 % it says so."""
+    from mcgs_warp.system.outputs import RelativeErrors
+
+    rng = np.random.default_rng(0)
+    parts = [rng.lognormal(-3, 1, n) for n in (1000, 5, 20000)]
+    h = RelativeErrors()
+    assert h.median() is None
+    for p in parts:
+        h.add(p)
+    assert abs(h.median() - np.median(np.concatenate(parts))) <= RelativeErrors.BIN
+    far = RelativeErrors()
+    far.add(np.array([0.1, 3.0, 5.0]))
+    assert far.median() == float("inf")

@@ -35,10 +35,16 @@ def run_dir(tmp_path_factory):
     return root, metrics
 
 
+def cv2_read(path):
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
+
+
 def test_run_writes_every_output(run_dir):
     root, metrics = run_dir
     run = root / "run"
-    for name in ["trajectory.txt", "trajectory_front.txt", "trajectory_left.txt", "trajectory_right.txt", "map.usdc", "map.ply", "metrics.json", "config.yaml", "rig.yaml", "keyframes.txt", "plots/trajectory.png", "plots/mapping.png"]:
+    for name in ["trajectory.txt", "trajectory_odometry.txt", "trajectory_front.txt", "trajectory_left.txt", "trajectory_right.txt", "map.usdc", "map.ply", "metrics.json", "config.yaml", "rig.yaml", "keyframes.txt", "plots/trajectory.png", "plots/mapping.png"]:
         assert (run / name).is_file(), name
     assert list((run / "renders").glob("keyframe_*_front.png"))
     saved = json.loads((run / "metrics.json").read_text())
@@ -57,6 +63,20 @@ def test_run_writes_every_output(run_dir):
     # say so); 5 % of the pixels mix surfaces at depth edges and carry 9x the error (0.56 vs 0.06 m)
     assert metrics["depth_l1_filled_m"] is None and metrics["depth_measured_fraction"] > 0.9 and min(metrics["measured_fraction_per_camera"].values()) > 0.9, metrics
     assert metrics["depth_l1_mixed_m"] > 4 * metrics["depth_l1_measured_m"], metrics
+    # per camera against the exact depth: the median relative error the depth PNGs show (mm), on the pixels both have
+    per_cam = metrics["depth_vs_exact_per_camera"]
+    assert set(per_cam) == {"front", "left", "right"} and all(v["coverage"] > 0.95 and v["median_rel_measured"] <= v["median_rel"] + 0.002 for v in per_cam.values()), per_cam
+    from mcgs_warp.data import open_sequence
+
+    seq = open_sequence(root / "data")
+    frame_of = {round(t, 6): i for i, t in enumerate(seq.timestamps)}
+    rel = []
+    for k, t in enumerate(read_tum(run / "keyframes.txt").timestamps):
+        d = cv2_read(run / "depth" / f"keyframe_{k:03d}_front.png") / 1000.0
+        true = seq.gt_depths(frame_of[round(t, 6)])[0]
+        ok = (d > 0) & (true > 0)
+        rel.append(np.abs(d[ok] - true[ok]) / true[ok])
+    assert abs(np.median(np.concatenate(rel)) - per_cam["front"]["median_rel"]) < 0.002, (np.median(np.concatenate(rel)), per_cam)
     conf = sorted((run / "confidence").glob("keyframe_*.png"))
     assert len(conf) == 3 * metrics["n_keyframes"]
     import cv2
