@@ -1,7 +1,7 @@
-"""Where a run's time goes: seconds per stage and the share of them inside Warp kernels.
+"""Where a run's time goes: seconds per stage and the share of them inside Warp kernels and OpenCV.
 
     python benchmarks/stage_profile.py [--data ../shared/data/kitti_stereo_excerpt] [--out out/profile]
-        [--every 1] [--config C.yaml] [--cprofile out/profile/run.prof]
+        [--every 1] [--config C.yaml] [--cprofile out/profile/run.prof] [--device cuda:0]
 
 Runs ``mcgs-slam run`` in this process (default configuration unless ``--config``) with each
 stage's entry point wrapped: the time of a call is charged to the innermost stage running
@@ -9,9 +9,11 @@ stage's entry point wrapped: the time of a call is charged to the innermost stag
 photo-depth pass and refinement; refinement, the photo-depth pass and the outputs keep what
 they call). Warp's CPU launches are synchronous, so the time the main
 thread spends in ``wp.launch`` plus the time it waits for the row bands' worker threads
-(:mod:`kernels.launch`) is the wall time inside kernels; the rest is Python, NumPy, OpenCV
-and copies. Prints one row per stage: calls, seconds, share of the run, seconds inside
-kernels and their share of the stage, and the cores it kept busy (process CPU seconds of
+(:mod:`kernels.launch`) is the wall time inside kernels; OpenCV's functions and the methods of
+the objects it makes (SIFT, DIS flow, matchers) are timed alike; the rest is Python, NumPy and
+copies: what a GPU could not shorten. Prints one row per stage: calls, seconds, share of the
+run, seconds inside kernels and their share of the stage, seconds inside OpenCV, the seconds
+outside both, and the cores it kept busy (process CPU seconds of
 every thread over wall seconds: 2.0 on two cores is both busy throughout; what a stage
 leaves idle, another running beside it could use). Without the KITTI excerpt (its licence keeps it out of
 the repository) it runs the built-in synthetic demo sequence instead. ``--cprofile`` also
@@ -57,10 +59,11 @@ class StageClock:
         self.stack: list = []  # [stage, start, time of nested stages, CPU start, CPU of nested stages]
         self.seconds: dict = {}
         self.cpu: dict = {}  # process CPU seconds (every thread: row bands, OpenCV's) per stage
-        self.kernel: dict = {}
+        self.kernel: dict = {}  # main-thread seconds inside Warp kernels per stage
+        self.cv: dict = {}  # ... inside OpenCV
         self.calls: dict = {}
         self.main = threading.main_thread()
-        self.in_kernel = False
+        self.in_native = False
 
     def stage(self, name, fn):
         @functools.wraps(fn)
@@ -81,20 +84,49 @@ class StageClock:
                     self.stack[-1][4] += dc
         return timed
 
-    def kernel_time(self, fn):
+    def native_time(self, fn, bucket: dict):
+        """``fn`` with the main thread's wall time inside it charged to the running stage in
+        ``bucket`` (Warp's kernels, OpenCV): time spent outside Python, once (not nested)."""
+
         @functools.wraps(fn)
         def timed(*args, **kwargs):
-            if threading.current_thread() is not self.main or self.in_kernel:
+            if threading.current_thread() is not self.main or self.in_native:
                 return fn(*args, **kwargs)
-            self.in_kernel = True
+            self.in_native = True
             t0 = time.perf_counter()
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.in_kernel = False
+                self.in_native = False
                 name = self.stack[-1][0] if self.stack else "other"
-                self.kernel[name] = self.kernel.get(name, 0.0) + time.perf_counter() - t0
+                bucket[name] = bucket.get(name, 0.0) + time.perf_counter() - t0
         return timed
+
+    def opencv(self, cv2) -> None:
+        """Time every OpenCV function, and the methods of the objects its factories make
+        (SIFT, DIS flow, matchers), as :meth:`native_time` in ``self.cv``."""
+        clock = self
+
+        class Timed:
+            def __init__(self, obj):
+                self._obj = obj
+
+            def __getattr__(self, name):
+                a = getattr(self._obj, name)
+                return clock.native_time(a, clock.cv) if callable(a) else a
+
+        def factory(fn):
+            @functools.wraps(fn)
+            def make(*args, **kwargs):
+                return Timed(fn(*args, **kwargs))
+            return make
+
+        for name in dir(cv2):
+            v = getattr(cv2, name)
+            if name.endswith("_create") or name == "BFMatcher":
+                setattr(cv2, name, factory(v))
+            elif type(v).__name__ == "builtin_function_or_method" and not name.startswith("_"):
+                setattr(cv2, name, self.native_time(v, self.cv))
 
     def install(self) -> None:
         import importlib
@@ -103,8 +135,11 @@ class StageClock:
 
         from mcgs_warp.kernels import launch
 
-        wp.launch = self.kernel_time(wp.launch)
-        launch.wait = self.kernel_time(launch.wait)  # the row bands' worker threads
+        import cv2
+
+        wp.launch = self.native_time(wp.launch, self.kernel)
+        launch.wait = self.native_time(launch.wait, self.kernel)  # the row bands' worker threads
+        self.opencv(cv2)
         for module, owner, method, name in STAGES:
             mod = importlib.import_module(module)
             target = getattr(mod, owner) if owner else mod
@@ -118,6 +153,7 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=1)
     ap.add_argument("--config", type=Path, default=None)
     ap.add_argument("--cprofile", type=Path, default=None)
+    ap.add_argument("--device", default=None, help="Warp device, e.g. cuda:0 (default: Warp's default)")
     args = ap.parse_args()
 
     import warp as wp
@@ -125,7 +161,7 @@ def main() -> int:
     from mcgs_warp.cli import init_warp
 
     wp.config.log_level = wp.LOG_WARNING  # as the command line: no banner, no line per kernel module loaded
-    init_warp()
+    init_warp(args.device)
     clock = StageClock()
     clock.install()
     from mcgs_warp.system.run import run_sequence
@@ -140,6 +176,7 @@ def main() -> int:
         generate(data, n_cameras=3, n_frames=40, seed=0, depth="exact")
         args.config = args.config or packaged_config("synthetic.yaml")
     clock.kernel.clear()  # the demo sequence's rendering is no part of the run
+    clock.cv.clear()
     t0, c0 = time.perf_counter(), time.process_time()
     if args.cprofile is not None:
         import cProfile
@@ -147,7 +184,7 @@ def main() -> int:
         args.cprofile.parent.mkdir(parents=True, exist_ok=True)
         prof = cProfile.Profile()
         prof.enable()
-    run_sequence(data, args.out / "run", config=args.config, every=args.every, progress=False)
+    run_sequence(data, args.out / "run", config=args.config, every=args.every, progress=False, device=args.device)
     if args.cprofile is not None:
         prof.disable()
         prof.dump_stats(str(args.cprofile))
@@ -156,14 +193,16 @@ def main() -> int:
     clock.cpu["other (loop, loading)"] = total_cpu - sum(clock.cpu.values())
     rows = sorted(clock.seconds.items(), key=lambda kv: -kv[1]) + [("other (loop, loading)", rest)]
     print(f"\n{data} (--every {args.every}): {total:.1f} s\n")
-    print(f"| {'stage':<22} | {'calls':>5} | {'seconds':>8} | {'of run':>6} | {'in kernels':>10} | {'share':>5} | {'cores':>5} |")
-    print(f"|{'-' * 24}|{'-' * 7}|{'-' * 10}|{'-' * 8}|{'-' * 12}|{'-' * 7}|{'-' * 7}|")
+    print(f"| {'stage':<22} | {'calls':>5} | {'seconds':>8} | {'of run':>6} | {'in kernels':>10} | {'share':>5} | {'in OpenCV':>9} | {'outside both':>12} | {'cores':>5} |")
+    print(f"|{'-' * 24}|{'-' * 7}|{'-' * 10}|{'-' * 8}|{'-' * 12}|{'-' * 7}|{'-' * 11}|{'-' * 14}|{'-' * 7}|")
     for name, sec in rows:
-        kern = clock.kernel.get(name if name in clock.seconds else "other", 0.0)
+        key = name if name in clock.seconds else "other"
+        kern, cv = clock.kernel.get(key, 0.0), clock.cv.get(key, 0.0)
         cores = clock.cpu.get(name, 0.0) / max(sec, 1e-9)
-        print(f"| {name:<22} | {clock.calls.get(name, ''):>5} | {sec:8.1f} | {100 * sec / total:5.1f}% | {kern:10.1f} | {100 * kern / max(sec, 1e-9):4.0f}% | {cores:5.2f} |")
-    kern_all = sum(clock.kernel.values())
-    print(f"| {'total':<22} | {'':>5} | {total:8.1f} | 100.0% | {kern_all:10.1f} | {100 * kern_all / total:4.0f}% | {total_cpu / total:5.2f} |")
+        print(f"| {name:<22} | {clock.calls.get(name, ''):>5} | {sec:8.1f} | {100 * sec / total:5.1f}% | {kern:10.1f} | {100 * kern / max(sec, 1e-9):4.0f}% | {cv:9.1f} | {sec - kern - cv:12.1f} | {cores:5.2f} |")
+    kern_all, cv_all = sum(clock.kernel.values()), sum(clock.cv.values())
+    print(f"| {'total':<22} | {'':>5} | {total:8.1f} | 100.0% | {kern_all:10.1f} | {100 * kern_all / total:4.0f}% | {cv_all:9.1f} | {total - kern_all - cv_all:12.1f} | {total_cpu / total:5.2f} |")
+    print("\n'outside both': the main thread's seconds in Python, NumPy and copies, which a faster Warp device does not shorten")
     return 0
 
 

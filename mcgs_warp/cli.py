@@ -23,8 +23,8 @@ def _add_sequence_arguments(p) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", default=None, help="run configuration YAML (default: configs/default.yaml)")
     p.add_argument("--cameras", default=None, help="comma-separated camera indices to use, e.g. 0,2 (default: all)")
-    p.add_argument("--kitti-cameras", choices=("grey", "colour"), default="grey",
-                     help="KITTI odometry folders: the grey pair image_0/image_1 (default) or the colour pair image_2/image_3")
+    p.add_argument("--kitti-cameras", choices=("grey", "colour", "all"), default="grey",
+                     help="KITTI odometry folders: the grey pair image_0/image_1 (default), the colour pair image_2/image_3, or all four as one rig")
     p.add_argument("--segment", default=None, metavar="NAME",
                      help="Waymo Open Dataset v2 folders: the segment (context name); nuScenes: the scene, e.g. scene-0061 (default: the only one)")
     p.add_argument("--waymo-cameras", choices=("front3", "all"), default="front3",

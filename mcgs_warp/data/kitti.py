@@ -14,8 +14,9 @@ Every camera is rectified onto the image plane of camera 0, so ``P_i = K_i [I | 
 ``t_i = K_i^-1 P_i[:, 3]`` the position of camera 0 in camera i's frame. The rig body is
 camera 0 (``T_b_c0 = I``), so ground-truth poses are ``T_w_b`` as they stand (KITTI camera
 axes: x right, y down, z forward; gravity is about +y). The grey pair is the default; the
-colour pair is ``cameras="colour"`` (``mcgs-slam run --kitti-cameras colour``). Grey images
-are replicated to RGB. ``Tr:`` (velodyne -> camera 0) is read and ignored.
+colour pair is ``cameras="colour"`` (``mcgs-slam run --kitti-cameras colour``), and all four
+cameras, both pairs on one image plane, are ``cameras="all"`` (a 4-camera rig: the colour pair's
+longer baseline and the grey pair's measure depth together). Grey images are replicated to RGB. ``Tr:`` (velodyne -> camera 0) is read and ignored.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from ..rig import CameraSpec, Rig
 from .sequence import Frame, Sequence, read_timestamps
 from .trajectory import Trajectory
 
-PAIRS = {"grey": (0, 1), "colour": (2, 3)}  # which image_<i> folders form the rig
+PAIRS = {"grey": (0, 1), "colour": (2, 3), "all": (0, 1, 2, 3)}  # which image_<i> folders form the rig
 
 
 def is_kitti(path) -> bool:
@@ -101,7 +102,7 @@ def find_poses(root: Path) -> Path | None:
 
 
 class KittiSequence(Sequence):
-    """A KITTI odometry sequence folder (module docstring); ``cameras``: ``grey`` or ``colour``."""
+    """A KITTI odometry sequence folder (module docstring); ``cameras``: ``grey``, ``colour`` or ``all``."""
 
     def __init__(self, path, cameras: str = "grey"):
         from ..io import read_image
@@ -117,7 +118,7 @@ class KittiSequence(Sequence):
         for i in PAIRS[cameras]:
             folder = self.root / f"image_{i}"
             if not folder.is_dir():
-                hint = " (the colour pair needs image_2 and image_3)" if cameras == "colour" else " (KITTI stereo needs image_0 and image_1; --kitti-cameras colour reads image_2/image_3)"
+                hint = {"colour": " (the colour pair needs image_2 and image_3)", "all": " (all four cameras need image_0 to image_3)"}.get(cameras, " (KITTI stereo needs image_0 and image_1; --kitti-cameras colour reads image_2/image_3)")
                 raise InputError(folder, None, f"missing image folder{hint}")
             if f"P{i}" not in calib:
                 raise InputError(calib_path, f"P{i}", f"missing projection matrix for image_{i}")

@@ -77,6 +77,27 @@ def test_colour_pair_and_full_kitti_layout(tmp_path):
     assert seq.groundtruth is not None and len(seq.groundtruth) == 3  # from ../../poses/00.txt
 
 
+def test_all_four_cameras_as_one_rig(tmp_path):
+    """``--kitti-cameras all``: image_0 to image_3 as one 4-camera rig, each camera where its
+    projection puts it (grey pair, then colour pair), grey images as RGB and colour ones in RGB
+    order; without the colour folders it says which it needs."""
+    root = make_kitti(tmp_path / "s")
+    seq = open_sequence(root, kitti_cameras="all")
+    assert [c.name for c in seq.rig.cameras] == ["image_0", "image_1", "image_2", "image_3"]
+    lines = CALIB.splitlines()
+    for c, spec in enumerate(seq.rig.cameras):
+        P = np.array(lines[c].split()[1:], float).reshape(3, 4)
+        np.testing.assert_allclose(spec.T_b_c[:3, 3], -np.linalg.solve(P[:, :3], P[:, 3]), atol=1e-12)
+        np.testing.assert_allclose(spec.T_b_c[:3, :3], np.eye(3), atol=1e-12)
+    f = seq[1]
+    assert len(f.images) == 4 and f.depths == [None] * 4
+    np.testing.assert_allclose(f.images[0][..., 0], cv2.imread(str(root / "image_0" / "000001.png"), cv2.IMREAD_GRAYSCALE) / 255.0, atol=1e-6)
+    np.testing.assert_allclose(f.images[3], cv2.imread(str(root / "image_3" / "000001.png"))[..., ::-1] / 255.0, atol=1e-6)
+    grey_only = make_kitti(tmp_path / "g", colour=False)
+    with pytest.raises(InputError, match=r"image_2: missing image folder \(all four cameras need image_0 to image_3\)"):
+        open_sequence(grey_only, kitti_cameras="all")
+
+
 def test_bad_kitti_folders(tmp_path):
     root = make_kitti(tmp_path / "s", colour=False)
     with pytest.raises(InputError, match=r"image_2: missing image folder \(the colour pair needs image_2 and image_3\)"):
