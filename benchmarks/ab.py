@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import statistics
 import subprocess
 import sys
@@ -85,14 +86,19 @@ def main() -> int:
     args = ap.parse_args(argv)
     if not rest:
         ap.error("COMMAND missing: put it after --")
+    if args.runs < 1 or args.warmup < 0:
+        ap.error("--runs must be at least 1 and --warmup at least 0")
     times: dict = {"old": [], "new": []}
     with tempfile.TemporaryDirectory() as tmp:
-        trees = {"old": worktree(args.old, Path(tmp) / "old"), "new": worktree(args.new, Path(tmp) / "new")}
+        trees: dict = {}
         try:
+            for side in ("old", "new"):
+                trees[side] = worktree(getattr(args, side), Path(tmp) / side)
             for i in range(-args.warmup, args.runs):
                 for side in ("old", "new"):
                     tree = trees[side]
-                    out = (args.out / f"{side}_{i}").resolve() if i >= 0 else Path(tmp) / f"warmup_{side}"
+                    out = (args.out / f"{side}_{i}").resolve() if i >= 0 else Path(tmp) / f"warmup_{side}_{i}"
+                    shutil.rmtree(out, ignore_errors=True)  # no metrics of an earlier run are printed as this one's
                     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
                     cmd = command(rest, tree, out)
                     t0 = time.perf_counter()

@@ -76,17 +76,21 @@ def classical_input(seq, data: Path, frames: list[int], tmp: Path) -> tuple[Path
     or None and why it does not apply."""
     import cv2
 
+    if seq.groundtruth is None:
+        return None, "no ground truth to score it against"
     if (data / "image_0").is_dir() and (data / "image_1").is_dir() and (data / "calib.txt").is_file():
+        from mcgs_warp.data.kitti import find_poses
+
         for cam in ("image_0", "image_1"):
             files = sorted((data / cam).glob("*.png"))
             (tmp / cam).mkdir(parents=True)
             for n, f in enumerate(frames):
                 (tmp / cam / f"{n:06d}.png").symlink_to(files[f].resolve())
         shutil.copy(data / "calib.txt", tmp / "calib.txt")
-        poses = (data / "poses.txt").read_text().splitlines()
+        poses = [line for line in find_poses(data).read_text().splitlines() if line.strip()]
         (tmp / "poses.txt").write_text("".join(poses[f] + "\n" for f in frames))
         return tmp, ""
-    if len(seq.rig) == 1 and any(seq.depth_cameras()) and seq.groundtruth is not None:
+    if len(seq.rig) == 1 and any(seq.depth_cameras()):
         from mcgs_warp.data.trajectory import nearest_timestamps
         from mcgs_warp.geometry import matrix_to_quat
 
@@ -106,7 +110,7 @@ def classical_input(seq, data: Path, frames: list[int], tmp: Path) -> tuple[Path
             fr = seq[f]
             cv2.imwrite(str(tmp / "cam0" / "rgb" / f"{n:06d}.png"), cv2.cvtColor(np.clip(fr.images[0] * 255 + 0.5, 0, 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
             cv2.imwrite(str(tmp / "cam0" / "depth" / f"{n:06d}.png"), np.clip(fr.depths[0] * 1000 + 0.5, 0, 65535).astype(np.uint16))
-            T = seq.groundtruth.poses[g]
+            T = seq.groundtruth.poses[g] @ spec.T_b_c  # the classical VO's world-from-camera
             rows.append(f"{seq.timestamps[f]:.6f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *matrix_to_quat(T[:3, :3]))))
         (tmp / "groundtruth.txt").write_text("\n".join(rows) + "\n")
         return tmp, ""
@@ -114,7 +118,8 @@ def classical_input(seq, data: Path, frames: list[int], tmp: Path) -> tuple[Path
 
 
 def classical_trajectory(est_file: Path, tmp: Path, seq, frames: list[int]):
-    """The classical VO's estimate (KITTI rows, T_w_cam0 = our body) at the frames it ran."""
+    """The classical VO's estimate (KITTI rows of T_w_cam0) as our rig body's poses at the frames
+    it ran (a KITTI rig's body is camera 0; one depth camera's is where its T_b_c says)."""
     from mcgs_warp.data.trajectory import Trajectory
 
     A = np.loadtxt(est_file).reshape(-1, 3, 4)
@@ -123,6 +128,7 @@ def classical_trajectory(est_file: Path, tmp: Path, seq, frames: list[int]):
     stamps = np.asarray(seq.timestamps)[frames]
     if (tmp / "groundtruth.txt").is_file():  # one camera with depth: the frames that had ground truth
         stamps = np.loadtxt(tmp / "groundtruth.txt", ndmin=2)[:, 0]
+        T = T @ np.linalg.inv(seq.rig.cameras[0].T_b_c)
     return Trajectory(stamps[: len(T)], T[: len(stamps)])
 
 
@@ -184,7 +190,7 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         head = f"| {r['sequence']} | {r['every']} | {r['method']} |"
         if "se3_m" not in r:
-            lines.append(head + f" {r.get('skipped') or r.get('error')} |" + " |" * 10)
+            lines.append(head + f" {r.get('skipped') or r.get('error')} |" + " |" * 9)
             continue
         segs = f"{min(r['segments']):.4f}-{max(r['segments']):.4f}" if r["segments"] else "–"
         depth = "–"

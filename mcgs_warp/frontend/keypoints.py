@@ -128,9 +128,10 @@ def triangulate(T_a_b: np.ndarray, bear_a: np.ndarray, bear_b: np.ndarray):
 
 
 #: Stereo matching along the epipolar line (:func:`epipolar_zncc`), as classical stereo VO does on
-#: rectified rows: an 11x11 patch, the match found within SEARCH px of the descriptor's, accepted at
-#: ZNCC >= ZNCC_MIN, on the line (the rows beside score lower: within half a pixel of it) and
-#: unambiguous (no other peak within UNIQUE px scores within ZNCC_MARGIN of it)
+#: rectified rows: an 11x11 patch, the match found less than SEARCH px from the descriptor's (the
+#: parabola's neighbours inside the search), accepted at ZNCC >= ZNCC_MIN, on the line (the rows
+#: beside score lower: within half a pixel of it) and unambiguous (no score along the line more than
+#: 2 px from the peak, within UNIQUE px of the strip's centre, comes within ZNCC_MARGIN of it)
 PATCH, SEARCH, UNIQUE, ZNCC_MIN, ZNCC_MARGIN = 5, 3, 12, 0.8, 0.05
 
 
@@ -171,7 +172,8 @@ def _sample(grey: np.ndarray, centre: np.ndarray, e: np.ndarray, half_x: int, ha
     P, h, w = g.shape[:3]
     mx = np.ascontiguousarray(g[..., 0].reshape(P * h, w), np.float32)
     my = np.ascontiguousarray(g[..., 1].reshape(P * h, w), np.float32)
-    return cv2.remap(grey, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(P, h, w)
+    rows = 30000 // h * h  # OpenCV's maps hold fewer than 32767 rows
+    return np.concatenate([cv2.remap(grey, mx[r : r + rows], my[r : r + rows], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for r in range(0, P * h, rows)]).reshape(P, h, w)
 
 
 def epipolar_zncc(grey_a: np.ndarray, grey_b: np.ndarray, va: "ViewKeypoints", vb: "ViewKeypoints", ia, ib, T_a_b: np.ndarray, cam_a, cam_b):
@@ -182,10 +184,10 @@ def epipolar_zncc(grey_a: np.ndarray, grey_b: np.ndarray, va: "ViewKeypoints", v
     keypoint's epipolar line in a) is scored by ZNCC against b's image along b's line in
     whole-pixel steps (from a's position on a rectified pair, so that patch and line are
     interpolated at the same phase) and on the rows one pixel either side of the line. The
-    peak within ``SEARCH`` px of the descriptor match, refined by a parabola, is kept where it
-    scores at least ``ZNCC_MIN``, beats the rows beside it (the match lies within half a
-    pixel of the line) and no other peak within ``UNIQUE`` px comes within ``ZNCC_MARGIN`` of
-    it. Only the position along the line is measured, on a rectified pair the disparity, as
+    peak less than ``SEARCH`` px from the descriptor match, refined by a parabola, is kept where
+    it scores at least ``ZNCC_MIN``, beats the rows beside it (the match lies within half a
+    pixel of the line) and no score along the line more than 2 px from it (``UNIQUE`` px either
+    side of the strip's centre) comes within ``ZNCC_MARGIN`` of it: the classical VO's gates. Only the position along the line is measured, on a rectified pair the disparity, as
     classical stereo VO does: a match free to move across the line slides along slanted edges,
     and ZNCC, unlike brightness constancy, is blind to the cameras' different exposures."""
     ia, ib = np.asarray(ia), np.asarray(ib)

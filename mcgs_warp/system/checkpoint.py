@@ -102,7 +102,8 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
         raise InputError(path, None, f"unreadable checkpoint ({e})") from None
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise InputError(path, None, f"checkpoint was written by an older version (format {meta.get('format', 1)}, this version reads {CHECKPOINT_FORMAT}); start without --resume")
-    if meta["config"] != slam.cfg.to_dict() or meta["n_frames"] != len(slam.seq):
+    same_frames = "frame_index" in a and "timestamps" in a and all(0 <= int(f) < len(slam.seq) for f in a["frame_index"]) and np.allclose(np.asarray(a["timestamps"], np.float64), np.asarray(slam.seq.timestamps, np.float64)[np.asarray(a["frame_index"], np.int64)], rtol=0, atol=1e-6)
+    if meta["config"] != slam.cfg.to_dict() or meta["n_frames"] != len(slam.seq) or not same_frames:  # same_frames: another --frames range of as many frames
         raise InputError(path, None, "checkpoint was written by a run with another configuration or sequence; start without --resume")
     try:  # the format is the current one: a missing array means a damaged file
         buf = slam.buf

@@ -77,6 +77,13 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     other.mapping.iterations_per_keyframe = 4
     with pytest.raises(InputError, match="another configuration"):
         run_sequence(data, tmp_path / "cut", other, progress=False, resume=True)
+    # as many frames, but others (another --frames range): the keyframes' times tell
+    shifted = tmp_path / "shifted"
+    shutil.copytree(data, shifted)
+    stamps = np.loadtxt(shifted / "timestamps.txt", ndmin=2)[:, 0]
+    (shifted / "timestamps.txt").write_text("".join(f"{t + 0.05:.6f}\n" for t in stamps))
+    with pytest.raises(InputError, match="another configuration or sequence"):
+        run_sequence(shifted, tmp_path / "cut", small_config(weight), progress=False, resume=True)
     # one file per mapped keyframe beside the checkpoint (replaced ones are pruned)
     with np.load(tmp_path / "cut" / "checkpoint.npz") as z:
         names = set(z["keyframe_files"].tolist())
