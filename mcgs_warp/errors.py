@@ -9,6 +9,7 @@ prints it without a traceback and exits non-zero.
 from __future__ import annotations
 
 import os
+import sys
 
 
 class InputError(ValueError):
@@ -19,3 +20,9 @@ class InputError(ValueError):
         self.field = None if field is None else str(field)  # a YAML key may be a number
         where = ": ".join(p for p in (self.source, self.field) if p)
         super().__init__(f"{where}: {message}" if where else message)
+
+
+def warn(source, message: str) -> None:
+    """One warning line on stderr, ``warning: <source>: <message>`` (input that reads, but oddly)."""
+    where = f"{os.fspath(source)}: " if source is not None else ""
+    print(f"warning: {where}{message}", file=sys.stderr)

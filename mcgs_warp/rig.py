@@ -238,16 +238,6 @@ def load_rig(path) -> Rig:
     return rig_from_dict(load_yaml(path), src=path)
 
 
-def load_any_rig(path) -> Rig:
-    """A rig YAML file, or a Kalibr camchain (recognized by its ``cam0:`` block)."""
-    data = load_yaml(path)
-    if isinstance(data, dict) and "cam0" in data and "cameras" not in data:
-        from .data.kalibr import rig_from_kalibr
-
-        return rig_from_kalibr(path)
-    return rig_from_dict(data, src=path)
-
-
 def save_rig(rig: Rig, path) -> None:
     """Write ``rig`` as YAML (atomically)."""
     import yaml

@@ -79,7 +79,7 @@ def _check_body(own: list, rig, source, has_groundtruth: bool) -> None:
     import numpy as np
 
     from ..geometry import pose_distance
-    from .sequence import warn
+    from ..errors import warn
 
     moved, turned = pose_distance(own[0].T_b_c, rig.cameras[0].T_b_c)
     turned = float(np.degrees(turned))

@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..geometry import pose
 from ..rig import CameraSpec, Rig, load_yaml, parse_pose
-from .sequence import MAX_SYNC_DT, MAX_UNMATCHED_FRACTION, Frame, Sequence, warn
+from .sequence import MAX_SYNC_DT, MAX_UNMATCHED_FRACTION, Frame, Sequence
 from .trajectory import Trajectory, nearest_timestamps
 
 DISTORTION_MODELS = {"radial-tangential": "pinhole", "radtan": "pinhole", "equidistant": "fisheye"}

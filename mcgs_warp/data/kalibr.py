@@ -28,10 +28,9 @@ import re
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..geometry import invert, pose_distance
 from ..rig import CameraSpec, Rig, load_yaml, parse_camera, parse_pose, rig_from_dict
-from .sequence import warn
 
 #: (camera_model, distortion_model) -> our model
 MODELS = {("pinhole", "radtan"): "pinhole", ("pinhole", "none"): "pinhole", ("pinhole", "equidistant"): "fisheye"}
@@ -116,3 +115,11 @@ def rig_from_kalibr(path) -> Rig:
     rig = Rig(cameras)
     rig_from_dict(rig.to_dict(), src=path)  # the same checks as a rig file (names, poses)
     return rig
+
+
+def load_any_rig(path) -> Rig:
+    """A rig YAML file, or a Kalibr camchain (recognized by its ``cam0:`` block)."""
+    data = load_yaml(path)
+    if isinstance(data, dict) and "cam0" in data and "cameras" not in data:
+        return rig_from_kalibr(path)
+    return rig_from_dict(data, src=path)

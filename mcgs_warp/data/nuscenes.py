@@ -41,10 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..geometry import pose
 from ..rig import CameraSpec, Rig
-from .sequence import MAX_SYNC_DT, Frame, Sequence, warn
+from .sequence import MAX_SYNC_DT, Frame, Sequence
 from .trajectory import Trajectory, nearest_timestamps
 
 CHANNELS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT")

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..rig import Rig
-from .sequence import MAX_SYNC_DT, Frame, Sequence, warn
+from .sequence import MAX_SYNC_DT, Frame, Sequence
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"

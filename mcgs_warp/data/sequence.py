@@ -18,27 +18,20 @@ Our folder format::
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..rig import Rig, load_rig, save_rig
-from .trajectory import Trajectory, read_tum, write_tum
+from .trajectory import MAX_ASSOCIATION_DT, Trajectory, read_tum, write_tum
 
 DEPTH_SCALE_MM = 1000.0  # our depth PNGs: uint16 millimetres
 METADATA = "metadata.yaml"  # what the folder's depth is: exact | mono | none
 DEPTH_KINDS = ("exact", "mono", "none")
 MAX_SYNC_DT = 0.005  # s: images of two cameras this close are one rig frame (readers that pair streams)
 MAX_UNMATCHED_FRACTION = 0.10  # readers: more frames than this without a partner is worth a word
-
-
-def warn(source, message: str) -> None:
-    """One warning line on stderr, ``warning: <source>: <message>`` (input that reads, but oddly)."""
-    where = f"{source}: " if source is not None else ""
-    print(f"warning: {where}{message}", file=sys.stderr)
 
 
 @dataclass
@@ -263,7 +256,6 @@ class FolderSequence(Sequence):
     def _warn_groundtruth_outside(self, path: Path) -> None:
         """One warning when ground-truth poses lie outside the frames' time range by more than
         the association tolerance (another clock, or a file from another sequence)."""
-        from .tum import MAX_ASSOCIATION_DT  # here: tum imports this module
 
         t0, t1 = float(self.timestamps[0]), float(self.timestamps[-1])
         t = self.groundtruth.timestamps

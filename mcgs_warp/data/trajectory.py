@@ -11,6 +11,8 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import matrix_to_quat, pose
 
+MAX_ASSOCIATION_DT = 0.02  # s: a time of one stream and of another this close are one moment (TUM's associate.py)
+
 
 @dataclass
 class Trajectory:

@@ -19,13 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..rig import CameraSpec, Rig, load_rig
-from .sequence import MAX_UNMATCHED_FRACTION, Frame, Sequence, warn
-from .trajectory import nearest_timestamps, read_tum
+from .sequence import MAX_UNMATCHED_FRACTION, Frame, Sequence
+from .trajectory import MAX_ASSOCIATION_DT, nearest_timestamps, read_tum
 
 DEPTH_SCALE = 5000.0  # TUM depth PNG units per metre
-MAX_ASSOCIATION_DT = 0.02  # s
 
 # Published calibrations (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).
 FREIBURG = {

@@ -46,10 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, warn
 from ..geometry import rotation_error
 from ..rig import CameraSpec, Rig
-from .sequence import Frame, Sequence, warn
+from .sequence import Frame, Sequence
 from .trajectory import Trajectory
 
 COMPONENTS = ("camera_image", "camera_calibration", "vehicle_pose")  # vehicle_pose is optional

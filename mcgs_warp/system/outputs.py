@@ -331,7 +331,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         try:
             sim3 = evaluate(traj, seq.groundtruth, return_timestamps=True)
         except InputError as e:  # too few poses to align (a 2-keyframe scene): the rest of the run still counts
-            from ..data.sequence import warn
+            from ..errors import warn
 
             warn(None, f"trajectory not evaluated: {e}; metrics.json holds the rest")
     if sim3 is not None:
@@ -355,7 +355,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         write_tum(out / "groundtruth_in_map.txt", groundtruth_in_map(traj, seq.groundtruth, with_scale=not slam.tracker.metric_scale))
         why = scale_warning(slam.tracker.metric_scale, tm.scale)
         if why:
-            from ..data.sequence import warn
+            from ..errors import warn
 
             warn(None, why)
     with atomic_write(out / "metrics.json") as f:

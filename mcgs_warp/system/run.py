@@ -8,7 +8,8 @@ from pathlib import Path
 from ..data import open_sequence
 from ..data.resample import at_processing_resolution
 from ..data.sequence import CameraSubset, FrameSelection
-from ..rig import Rig, load_any_rig
+from ..data.kalibr import load_any_rig
+from ..rig import Rig
 from .config import RunConfig, load_run_config
 from .outputs import write_outputs
 from .slam import SLAM, Progress

@@ -85,7 +85,7 @@ class Tracker:
         self.sweep_depth: dict = {}  # keyframe -> per camera [h,w] float16 depth (m, 0 none) of its rig-pair and time-baseline sweeps at sweep resolution (:meth:`_sweep_depth`)
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
-            from ..data.sequence import warn
+            from ..errors import warn
 
             warn(None, f"depth source {self.prior.name!r} and no cross-view edges between overlapping rig cameras: the run is monocular; its trajectory and map have no metric scale (judge it by the Sim(3) ATE)")
 
@@ -405,7 +405,7 @@ class Tracker:
 
     def close_lost_span(self, resumed_at: int | None = None) -> None:
         """Say that tracking was lost (one warning line with the span), once it has ended."""
-        from ..data.sequence import warn
+        from ..errors import warn
 
         if self._lost_span is None:
             return
@@ -443,7 +443,7 @@ class Tracker:
         placed by the keypoint odometry) and solved or at least kept there. Re-matching around
         the constant-velocity prediction alone places nothing: guided matching on images
         that match nothing (sensor noise) finds a consistent flow around any prediction."""
-        from ..data.sequence import warn
+        from ..errors import warn
 
         buf = self.buf
         frame = buf.frame_index[k]

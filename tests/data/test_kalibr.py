@@ -15,7 +15,8 @@ from mcgs_warp.data.euroc import read_sensor
 from mcgs_warp.data.kalibr import rig_from_kalibr
 from mcgs_warp.errors import InputError
 from mcgs_warp.kernels.camera import Camera, camera_project
-from mcgs_warp.rig import load_any_rig, load_rig
+from mcgs_warp.data.kalibr import load_any_rig
+from mcgs_warp.rig import load_rig
 
 CALIB = Path(__file__).parent / "calibrations"
 RADTAN = CALIB / "euroc_camchain-imucam.yaml"
