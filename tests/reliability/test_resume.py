@@ -14,6 +14,8 @@ from mcgs_warp.errors import InputError
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 
 def small_config(keypoint_weight: float = 0.0):
     cfg = RunConfig()

@@ -17,6 +17,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "data"))
 from test_datasets import make_euroc, make_tum  # noqa: E402
 from test_sequence import random_trajectory, write_sequence  # noqa: E402
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 EUROC_T0 = 1403636579763555584  # ns
 
 

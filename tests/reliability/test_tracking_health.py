@@ -14,6 +14,8 @@ from mcgs_warp.geometry import pose
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 JUMP_AT = 4
 
 

@@ -23,6 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "data"))
 from test_nuscenes import make_nuscenes  # noqa: E402
 from waymo_fixture import SEGMENT, make_waymo  # noqa: E402
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 # a run of a 6-frame, 2-camera sequence in a few seconds (as tests/system/test_system.py's fast_config)
 FAST_YAML = """\
 tracking:

@@ -14,6 +14,8 @@ from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 from formats import stereo_rig, write_euroc, write_kitti, write_tum
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 N_FRAMES = 8
 
 

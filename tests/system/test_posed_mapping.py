@@ -13,6 +13,8 @@ from mcgs_warp.geometry import invert, se3_exp
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 
 def small_config():
     cfg = RunConfig()

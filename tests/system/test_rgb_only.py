@@ -11,6 +11,8 @@ from mcgs_warp.data.synthetic import generate
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 
 def short_config(correspondences="estimated"):
     cfg = RunConfig()

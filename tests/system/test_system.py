@@ -16,6 +16,8 @@ from mcgs_warp.io.usd import read_usd_map
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
 
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
+
 
 def fast_config():
     cfg = RunConfig()

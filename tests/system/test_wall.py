@@ -7,6 +7,7 @@ track alone, and the depth constrains nothing along the wall: only the faint til
 they repeat every 0.5 m."""
 
 import numpy as np
+import pytest
 
 from mcgs_warp.data import synthetic
 from mcgs_warp.data.realism import CameraRealism
@@ -14,6 +15,8 @@ from mcgs_warp.data.trajectory import Trajectory, read_tum
 from mcgs_warp.geometry import yaw_pitch_roll
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+
+pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
 WALL_Y = 1.1  # m: the tiled wall is the room's +y face; the drive runs along y = 0
 FRAMES = 40
