@@ -58,7 +58,7 @@ def cache_keyframes(data: Path, path: Path) -> dict:
     slam = PosedMapping(seq, cfg, seq.groundtruth, progress=Progress(True))
     slam.run()
     buf = slam.buf
-    traj = slam.tracker.trajectory(buf.frame_index)
+    traj = slam.tracker.filler.trajectory()
     d = {
         "rig": seq.rig, "images": [list(x) for x in buf.images], "targets": {k: list(v) for k, v in buf.targets.items()},
         "poses": buf.get_poses(), "frame_index": list(buf.frame_index), "timestamps": list(buf.timestamps),

@@ -1,5 +1,8 @@
 """Trajectories in TUM format: one pose per line, ``t tx ty tz qx qy qz qw``
-(seconds, metres, unit quaternion x y z w); ``#`` starts a comment."""
+(seconds, metres, unit quaternion x y z w); ``#`` starts a comment. And the one pose
+interpolation in time (:func:`bracket`, :func:`interpolate_pose`: linear translation,
+spherical-linear rotation) that places frames between keyframes and reads given poses at
+frame times."""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import matrix_to_quat, pose
+from ..geometry import matrix_to_quat, pose, quat_to_matrix
 
 MAX_ASSOCIATION_DT = 0.02  # s: a time of one stream and of another this close are one moment (TUM's associate.py)
 
@@ -37,6 +40,38 @@ def nearest_timestamps(t_a: np.ndarray, t_b: np.ndarray, max_dt: float) -> np.nd
     if len(t_b) > 1:
         j = np.where(np.abs(t_b[j - 1] - t_a) <= np.abs(t_b[j] - t_a), j - 1, j)
     return np.where(np.abs(t_b[j] - t_a) <= max_dt, j, -1)
+
+
+def bracket(timestamps, t: float) -> tuple[int, int, float]:
+    """The two of increasing ``timestamps`` [K] (s) around time ``t`` (s) and how far ``t``
+    lies from the first to the second: ``(a, a + 1, u)`` with ``u`` in [0, 1] (clamped before
+    the first time and after the last); ``(0, 0, 0.0)`` for a single time."""
+    if len(timestamps) == 1:
+        return 0, 0, 0.0
+    j = int(np.clip(np.searchsorted(timestamps, t), 1, len(timestamps) - 1))
+    return j - 1, j, float(np.clip((t - timestamps[j - 1]) / max(timestamps[j] - timestamps[j - 1], 1e-12), 0.0, 1.0))
+
+
+def interpolate_pose(A: np.ndarray, B: np.ndarray, u: float) -> np.ndarray:
+    """The pose [4,4] a fraction ``u`` of the way from ``A`` to ``B``: linear translation,
+    spherical-linear rotation."""
+    T = np.eye(4)
+    T[:3, 3] = (1 - u) * A[:3, 3] + u * B[:3, 3]
+    T[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(A[:3, :3]), matrix_to_quat(B[:3, :3]), u))
+    return T
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
+    """The unit quaternion [4] a fraction ``u`` of the way from ``q0`` to ``q1`` the shorter
+    way round (normalized linear interpolation where they nearly agree)."""
+    d = float(np.dot(q0, q1))
+    if d < 0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + u * (q1 - q0)
+        return q / np.linalg.norm(q)
+    th = np.arccos(d)
+    return (np.sin((1 - u) * th) * q0 + np.sin(u * th) * q1) / np.sin(th)
 
 
 def read_tum(path, min_poses: int = 1) -> Trajectory:

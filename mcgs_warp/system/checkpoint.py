@@ -50,7 +50,7 @@ def save_checkpoint(slam, path, next_frame: int, kf_frames: list) -> None:
         **slam.tracker.mcba.state_arrays(),
         mapped_keys=np.array(sorted(slam.mapper.placed), dtype=np.int64),
         keyframe_files=np.array(_save_keyframe_files(slam, keyframe_store(path)), dtype=str).reshape(-1),
-        meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": slam.cfg.to_dict(), "n_frames": len(slam.seq), "seconds": slam.seconds, "health": slam.tracker.health, "lost": slam.tracker.lost, "kept": slam.tracker.kept, "carried": slam.tracker._carried, "lost_span": slam.tracker._lost_span, "frame_motion": {str(k): v for k, v in slam.tracker.frame_motion.items()}})),
+        meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": slam.cfg.to_dict(), "n_frames": len(slam.seq), "seconds": slam.seconds, "health": slam.tracker.health, "lost": slam.tracker.lost, "kept": slam.tracker.kept, "carried": slam.tracker._carried, "lost_span": slam.tracker._lost_span, "frame_motion": {str(k): v for k, v in slam.tracker.filler.motion.items()}})),
     )
     with atomic_write(path, "wb") as f:
         np.savez(f, **arrays)
@@ -155,7 +155,7 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
         slam.tracker.health = meta["health"]
         slam.tracker.lost, slam.tracker._carried, slam.tracker._lost_span = [int(k) for k in meta["lost"]], bool(meta["carried"]), meta["lost_span"]
         slam.tracker.kept = [int(k) for k in meta["kept"]]
-        slam.tracker.frame_motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
+        slam.tracker.filler.motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
         kf_frames = [int(v) for v in a["kf_frames"]]
     except KeyError as e:
         raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None

@@ -10,21 +10,23 @@ refinement, if any). With the ground truth it measures the mapping alone: the ma
 beside every tracking result.
 
 Poses are the rig body's ``T_w_b`` (TUM: ``t tx ty tz qx qy qz qw``), interpolated to each
-frame's time (linear translation, slerp rotation; a frame more than ``max_dt`` outside the
-trajectory is an error). The map and the written trajectory are in the first frame's rig
-frame, as a run's (GNSS coordinates far from the origin would cost float32 precision).
+frame's time as a run's frames between keyframes are
+(:func:`~mcgs_warp.data.trajectory.interpolate_pose`: linear translation, slerp rotation; a
+frame more than ``max_dt`` outside the trajectory is an error). The map and the written
+trajectory are in the first frame's rig frame, as a run's (GNSS coordinates far from the
+origin would cost float32 precision).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..data.trajectory import Trajectory
+from ..data.trajectory import Trajectory, bracket, interpolate_pose
 from ..errors import InputError
 from ..geometry import invert
 from .config import RunConfig
 from .slam import SLAM
-from .tracker import Tracker, interpolate_pose
+from .tracker import Tracker
 
 
 def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarray:
@@ -36,12 +38,8 @@ def poses_at(traj: Trajectory, stamps, source, max_dt: float = 0.02) -> np.ndarr
     for n, s in enumerate(stamps):
         if s < t[0] - max_dt or s > t[-1] + max_dt:
             raise InputError(source, None, f"frame {n} at t = {s:.6f} s lies outside the given poses ({t[0]:.6f}-{t[-1]:.6f} s, tolerance {max_dt} s)")
-        j = int(np.clip(np.searchsorted(t, s), 1, max(len(t) - 1, 1))) if len(t) > 1 else 0
-        if len(t) == 1:
-            out[n] = traj.poses[0]
-            continue
-        u = float(np.clip((s - t[j - 1]) / max(t[j] - t[j - 1], 1e-12), 0.0, 1.0))
-        out[n] = interpolate_pose(traj.poses[j - 1], traj.poses[j], u)
+        a, b, u = bracket(t, s)
+        out[n] = traj.poses[a] if a == b else interpolate_pose(traj.poses[a], traj.poses[b], u)
     return out
 
 
@@ -63,7 +61,7 @@ class PosedTracker(Tracker):
         """A weak depth solve keeps its given pose: nothing to relocalize."""
         return True
 
-    def _filler(self, fa: int, fb: int):
+    def frame_poses(self, fa: int, fb: int):
         return self.given
 
 

@@ -132,7 +132,7 @@ class SLAM:
         self.progress.done()
         tracker.close_lost_span()
         self.refine()
-        traj = tracker.trajectory(kf_frames)
+        traj = tracker.filler.trajectory()
         curve = [(i, r.loss, r.psnr) for i, r in enumerate(self.mapper.history)]
         return RunResult(traj, kf_frames, curve, dict(self.seconds))
 

@@ -8,6 +8,8 @@ Its inputs are the sequence's frames; its state is the keyframe buffer's poses a
 (which it alone writes), the factor graph, the odometry and the keypoint tracks. What the map
 must do about it leaves as a list of updates (:meth:`Tracker.take_update`: poses that moved,
 depths that changed with their fresh mapping targets): the tracker never touches the map.
+Each frame's motion goes to its trajectory filler (:attr:`Tracker.filler`,
+:mod:`.trajectory_filler`), which places every frame after the run.
 """
 
 from __future__ import annotations
@@ -24,17 +26,16 @@ from ..ba.keypoint_tracks import KeypointTracks
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
-from ..data.trajectory import Trajectory
 from ..frontend.depth import choose_prior, grid_depth, upsample_inverse_depth_guided
 from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, NoCorrespondences, SequenceGroundTruthFlow, StereoMatches
 from ..frontend.keyframes import KeyframeSelector
 from ..frontend.keypoint_odometry import KeypointOdometry
 from ..frontend.keypoint_tracker import KeypointTracker
 from ..frontend.stereo import RigStereo, upsample_nearest
-from ..geometry import matrix_to_quat, quat_to_matrix, se3_exp, se3_log
 from ..mapping.follow import DepthMoved, PosesMoved
 from .config import RunConfig
 from .memory import release_freed_memory
+from .trajectory_filler import TrajectoryFiller, constant_velocity
 
 log = logging.getLogger("mcgs_warp.slam")
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
@@ -76,7 +77,7 @@ class Tracker:
         self.graph = FactorGraph(self.buf, self.overlap, replace(tc.graph, max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
         self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._events: list = []  # what the map must follow since the last update (:meth:`take_update`)
-        self.frame_motion: dict = {}  # frame index -> image motion (rad) since the frame before it (the keyframe test's flows, :func:`motion`)
+        self.filler = TrajectoryFiller(buffer, sequence.timestamps, self.frame_poses)  # every frame's pose, from the keyframes' and each frame's motion
         self._anchor = None  # the newest keyframe's keypoint pose (PnPResult) or None
         self._geometric, self._grid = None, None  # the last solve's depth-alignment factors (window, factors); grid rays and cameras for them
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
@@ -129,7 +130,8 @@ class Tracker:
         if last_keyframe_images is None:
             return True
         # the keyframe test's flows also tell whether the rig stood still since the frame before
-        is_kf, self.frame_motion[index] = self.selector.is_keyframe(last_keyframe_images, frame.images)
+        is_kf, motion = self.selector.is_keyframe(last_keyframe_images, frame.images)
+        self.filler.record(index, motion)
         return is_kf or index == len(self.seq) - 1
 
     def measure(self, refresh=(), guided_new: bool = False) -> None:
@@ -583,10 +585,10 @@ class Tracker:
         kept = [int(k) for k in keyframes if k in self.kept]
         return {int(keyframes[0]), *kept} if kept else None
 
-    def _filler(self, fa: int, fb: int):
+    def frame_poses(self, fa: int, fb: int):
         """Poses [frame -> 4x4] that place the frames between keyframes at frames ``fa`` and
-        ``fb`` (:meth:`trajectory`): the keypoint odometry's where it placed every frame of
-        the span, else None."""
+        ``fb`` (:class:`~mcgs_warp.system.trajectory_filler.TrajectoryFiller`): the keypoint
+        odometry's where it placed every frame of the span, else None."""
         odo = self.odometry
         return odo.poses if odo is not None and odo.span_tracked(fa, fb) else None
 
@@ -599,46 +601,6 @@ class Tracker:
     @property
     def _keyframe_of(self) -> dict:
         return {int(f): k for k, f in enumerate(self.buf.frame_index)}
-
-    def trajectory(self, kf_frames) -> Trajectory:
-        """Rig poses for every frame: keyframes as estimated; a frame between two keyframes
-        that the keypoint odometry placed (every frame of the span) is its odometry pose
-        moved by the correction of the keyframe poses, ``T_kf (T_kf^odo)^-1``, interpolated
-        between the two keyframes in time (DROID-SLAM's trajectory filler does the same with
-        its own tracking). Other frames are interpolated between their keyframes (linear
-        translation, spherical-linear rotation) in time, except that
-        time the rig stood still does not count: a frame whose image motion since the frame
-        before (:attr:`frame_motion`) is below :data:`STILL_MOTION` did not move
-        (:func:`moving_time`). So a pause stands still, and a drive is plain time
-        interpolation (which a car's smooth motion suits: 3 mm off on a straight KITTI
-        drive with the true keyframe poses)."""
-        T_kf = self.buf.get_poses()
-        t_kf = np.array(self.buf.timestamps)
-        stamps = np.asarray(self.seq.timestamps, dtype=np.float64)
-        out = np.zeros((len(stamps), 4, 4))
-        clocks: dict = {}
-        fillers: dict = {}  # (fa, fb) -> frame poses that place the frames between (:meth:`_filler`) or None
-        for i, t in enumerate(stamps):
-            j = int(np.clip(np.searchsorted(t_kf, t), 1, max(len(t_kf) - 1, 1))) if len(t_kf) > 1 else 0
-            if len(t_kf) == 1:
-                out[i] = T_kf[0]
-                continue
-            a, b = j - 1, j
-            u = float(np.clip((t - t_kf[a]) / max(t_kf[b] - t_kf[a], 1e-12), 0.0, 1.0))
-            fa, fb = self.buf.frame_index[a], self.buf.frame_index[b]
-            if fa < i < fb and (fa, fb) not in fillers:
-                fillers[(fa, fb)] = self._filler(fa, fb)
-            src = fillers.get((fa, fb))
-            if fa < i < fb and src is not None:
-                out[i] = interpolate_pose(T_kf[a] @ np.linalg.inv(src[fa]), T_kf[b] @ np.linalg.inv(src[fb]), u) @ src[i]
-                continue
-            if fa < i < fb:
-                if (fa, fb) not in clocks:  # once per keyframe interval
-                    clocks[(fa, fb)] = moving_time(stamps[fa : fb + 1], [self.frame_motion.get(f) for f in range(fa + 1, fb + 1)])
-                if clocks[(fa, fb)] is not None:
-                    u = float(clocks[(fa, fb)][i - fa])
-            out[i] = interpolate_pose(T_kf[a], T_kf[b], u)
-        return Trajectory(stamps, out)
 
     def global_ba(self, iterations: int, radius: int) -> list:
         """The offline MCBA over every keyframe (paper Fig. 3, bottom): long edges between
@@ -656,52 +618,3 @@ class Tracker:
         self._solve(everything, guided_new=True, config=offline)
         return self.take_update()
 
-
-#: rad (1.8 px at a 180 px focal length, 3.7 px at KITTI's 370): less image motion since the frame before
-#: is a pause. Chosen on indoor seeds 6 and 10 (camera noise in a still, low-texture corridor reaches
-#: 0.006 rad; the slowest drive 0.024); KITTI's frames move 0.028 rad or more.
-STILL_MOTION = 0.01
-
-
-def constant_velocity(T_a: np.ndarray, T_b: np.ndarray, t_a: float, t_b: float, t: float) -> np.ndarray:
-    """The pose [4,4] at time ``t`` (s) if the rig keeps the body-frame twist it had from
-    ``T_a`` (time ``t_a``) to ``T_b`` (``t_b``): keyframes are not evenly spaced in time, and
-    repeating the last keyframe step at a gap of another length starts the solve a
-    fraction of a step off (facing a tiled wall, where keypoints fail, guided flow then locked
-    onto the tile beside the true one: 0.5 m jumps, tests/system/test_wall.py)."""
-    rate = (t - t_b) / (t_b - t_a) if t_b > t_a else 1.0
-    return T_b @ se3_exp(rate * se3_log(np.linalg.inv(T_a) @ T_b))
-
-
-def moving_time(stamps, motions, still: float = STILL_MOTION):
-    """Fractions [n] of the time from the first to the last of ``stamps`` [n] that the rig
-    spent moving, per frame, or None (all frames moved: plain time interpolation; a motion
-    is unknown; nothing moved). ``motions`` [n-1]: image motion (rad) of each frame after
-    the first since the frame before it; below ``still`` it stood still."""
-    if any(m is None for m in motions):
-        return None
-    moved = np.asarray(motions, np.float64) >= still
-    if moved.all() or not moved.any():
-        return None
-    clock = np.concatenate([[0.0], np.cumsum(np.where(moved, np.diff(np.asarray(stamps, np.float64)), 0.0))])
-    return clock / clock[-1]
-
-
-def interpolate_pose(A: np.ndarray, B: np.ndarray, u: float) -> np.ndarray:
-    """The pose [4,4] a fraction ``u`` of the way from ``A`` to ``B``: linear translation,
-    spherical-linear rotation."""
-    T = np.eye(4)
-    T[:3, 3] = (1 - u) * A[:3, 3] + u * B[:3, 3]
-    T[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(A[:3, :3]), matrix_to_quat(B[:3, :3]), u))
-    return T
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
-    d = float(np.dot(q0, q1))
-    if d < 0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + u * (q1 - q0)
-        return q / np.linalg.norm(q)
-    th = np.arccos(d)
-    return (np.sin((1 - u) * th) * q0 + np.sin(u * th) * q1) / np.sin(th)

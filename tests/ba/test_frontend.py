@@ -511,7 +511,7 @@ def test_image_motion_finds_a_pause_and_only_the_pause(tmp_path):
     those a mean-flow-magnitude rule would call still (turning while driving)."""
     from mcgs_warp.data.indoor import indoor_layout
     from mcgs_warp.data.synthetic import generate
-    from mcgs_warp.system.tracker import STILL_MOTION
+    from mcgs_warp.system.trajectory_filler import STILL_MOTION
 
     lay = indoor_layout(3)
     seq = generate(tmp_path / "seq", n_cameras=2, n_frames=lay.pause_start + lay.pause_frames + 3, seed=3, progress=False, depth="none", scene="indoor", realism="camera")

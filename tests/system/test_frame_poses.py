@@ -1,12 +1,14 @@
-"""The frames between keyframes: placed by the keypoint odometry (moved by the keyframes'
-correction) where it tracked the span, else interpolated in time."""
+"""The frames between keyframes (:class:`~mcgs_warp.system.trajectory_filler.TrajectoryFiller`):
+placed by the keypoint odometry (moved by the keyframes' correction) where it tracked the span,
+else interpolated in time, without the time the rig stood still; and a new keyframe's start
+at constant velocity."""
 
 from types import SimpleNamespace
 
 import numpy as np
 
 from mcgs_warp.geometry import se3_exp
-from mcgs_warp.system.tracker import Tracker
+from mcgs_warp.system.trajectory_filler import TrajectoryFiller, constant_velocity
 
 
 def _curve(n):
@@ -18,12 +20,16 @@ def _curve(n):
     return np.stack(poses)
 
 
-def _slam(truth, kf, filler):
-    """The parts of a tracker that :meth:`Tracker.trajectory` reads: keyframe poses, times and
-    frames, frame times, image motions, and the filler's poses."""
+def _keyframes(poses, stamps, frames):
+    """The parts of a keyframe buffer that the filler reads: keyframe poses, times and frames."""
+    return SimpleNamespace(get_poses=lambda: poses, timestamps=list(stamps), frame_index=list(frames))
+
+
+def _filler(truth, kf, placed):
+    """A filler of frames at 10 Hz with keyframes ``kf`` at their true poses, the frames
+    between placed by ``placed`` (or not: None)."""
     stamps = 0.1 * np.arange(len(truth))
-    buf = SimpleNamespace(get_poses=lambda: truth[kf], timestamps=list(stamps[kf]), frame_index=list(kf))
-    return SimpleNamespace(buf=buf, seq=SimpleNamespace(timestamps=stamps), frame_motion={}, _filler=lambda fa, fb: filler)
+    return TrajectoryFiller(_keyframes(truth[kf], stamps[kf], kf), stamps, lambda fa, fb: placed)
 
 
 def test_frames_between_keyframes_follow_the_odometry():
@@ -31,11 +37,29 @@ def test_frames_between_keyframes_follow_the_odometry():
     kf = [0, 4, 8]
     G = se3_exp([3.0, -1.0, 2.0, 0.1, -0.4, 0.2])  # the odometry's own world frame
     odometry = {i: G @ T for i, T in enumerate(truth)}
-    placed = Tracker.trajectory(_slam(truth, kf, odometry), kf).poses
+    placed = _filler(truth, kf, odometry).trajectory().poses
     np.testing.assert_allclose(placed, truth, atol=1e-9)
-    interpolated = Tracker.trajectory(_slam(truth, kf, None), kf).poses  # no odometry: in time
+    interpolated = _filler(truth, kf, None).trajectory().poses  # no odometry: in time
     assert np.linalg.norm(interpolated[1:4, :3, 3] - truth[1:4, :3, 3], axis=1).max() > 0.05
     np.testing.assert_allclose(interpolated[kf], truth[kf], atol=1e-9)
+
+
+def test_frames_between_keyframes_skip_the_time_the_rig_stood_still():
+    """Keyframes at frames 0 and 5; the rig stood still over frames 1-3 (no image motion
+    since the frame before) and then moved: frames 1-3 stay at keyframe 0 and frame 4 lies
+    half way (half the moving time). Interpolating in time would put them at 1/5 .. 4/5. When
+    every frame moved, or a motion is unknown, it is plain time interpolation."""
+    T0, T5 = np.eye(4), np.eye(4)
+    T5[:3, 3] = [2.0, 0.0, 0.0]
+    filler = TrajectoryFiller(_keyframes(np.stack([T0, T5]), [0.0, 0.5], [0, 5]), np.arange(6) * 0.1, lambda fa, fb: None)  # no keypoint odometry
+    for f, m in {1: 0.001, 2: 0.0005, 3: 0.001, 4: 0.05, 5: 0.05}.items():
+        filler.record(f, m)
+    x = filler.trajectory().positions[:, 0]
+    np.testing.assert_allclose(x, [0.0, 0.0, 0.0, 0.0, 1.0, 2.0], atol=1e-12)
+    # steady motion; uneven motion (a car turning: parallax and rotation); no motions
+    for motions in ({1: 0.02, 2: 0.02, 3: 0.02, 4: 0.02, 5: 0.02}, {1: 0.05, 2: 0.012, 3: 0.03, 4: 0.015, 5: 0.02}, {}):
+        filler.motion = dict(motions)
+        np.testing.assert_allclose(filler.trajectory().positions[:, 0], [0.0, 0.4, 0.8, 1.2, 1.6, 2.0], atol=1e-12)
 
 
 def test_a_keyframe_starts_at_the_rigs_velocity_in_time():
@@ -44,7 +68,6 @@ def test_a_keyframe_starts_at_the_rigs_velocity_in_time():
     step repeated (which lands 0.36 m short here). ``se3_log`` inverts ``se3_exp`` up to
     nearly half a turn."""
     from mcgs_warp.geometry import se3_log
-    from mcgs_warp.system.tracker import constant_velocity
 
     rng = np.random.default_rng(1)
     xi = np.array([1.2, 0.1, -0.05, 0.1, 0.35, 0.15])

@@ -208,24 +208,3 @@ def test_examples_read_the_run(run_dir, tmp_path):
     assert "ParticleField3DGaussianSplat" in text and "Gaussians" in text and "(Camera)" in text
     img = load("render_novel_view").render_novel(run, keyframe=1, shift=0.2, yaw_deg=5)
     assert img.shape[0] == 3 * 240 and img[..., :3].std() > 0.05
-
-
-def test_frames_between_keyframes_skip_the_time_the_rig_stood_still():
-    """Keyframes at frames 0 and 5; the rig stood still over frames 1-3 (no image motion
-    since the frame before) and then moved: frames 1-3 stay at keyframe 0 and frame 4 lies
-    half way (half the moving time). Interpolating in time would put them at 1/5 .. 4/5. When
-    every frame moved, or a motion is unknown, it is plain time interpolation."""
-    from types import SimpleNamespace
-
-    from mcgs_warp.system.tracker import Tracker
-
-    T0, T5 = np.eye(4), np.eye(4)
-    T5[:3, 3] = [2.0, 0.0, 0.0]
-    buf = SimpleNamespace(get_poses=lambda: np.stack([T0, T5]), timestamps=[0.0, 0.5], frame_index=[0, 5])
-    fake = SimpleNamespace(buf=buf, seq=SimpleNamespace(timestamps=np.arange(6) * 0.1), frame_motion={1: 0.001, 2: 0.0005, 3: 0.001, 4: 0.05, 5: 0.05}, _filler=lambda fa, fb: None)  # no keypoint odometry
-    x = Tracker.trajectory(fake, [0, 5]).positions[:, 0]
-    np.testing.assert_allclose(x, [0.0, 0.0, 0.0, 0.0, 1.0, 2.0], atol=1e-12)
-    # steady motion; uneven motion (a car turning: parallax and rotation); no motions
-    for motions in ({1: 0.02, 2: 0.02, 3: 0.02, 4: 0.02, 5: 0.02}, {1: 0.05, 2: 0.012, 3: 0.03, 4: 0.015, 5: 0.02}, {}):
-        fake.frame_motion = motions
-        np.testing.assert_allclose(Tracker.trajectory(fake, [0, 5]).positions[:, 0], [0.0, 0.4, 0.8, 1.2, 1.6, 2.0], atol=1e-12)
