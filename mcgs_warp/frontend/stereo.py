@@ -9,7 +9,7 @@ metric), at ``1/scale`` resolution, and the two directions are checked against e
 same camera at other keyframes (time-baseline multi-view stereo), and
 :meth:`RigStereo.temporal_depth` puts the rig pairs' depth behind it: the tracker's mapping
 targets take that where MCBA's depth constrains no pixel (a side camera's near road
-at speed, a wall only one camera sees; :meth:`~mcgs_warp.system.tracker.Tracker.mapping_depths`).
+at speed, a wall only one camera sees; :meth:`~mcgs_warp.system.depth_targets.DepthTargets.compute`).
 It is no MCBA prior: there it moved the RGB-only scale by 1.7 % (a temporal depth carries the
 trajectory's current scale, so it only holds that scale in place).
 

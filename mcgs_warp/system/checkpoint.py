@@ -74,7 +74,7 @@ def _save_keyframe_files(slam, store: Path) -> list:
     for k in sorted(slam.mapper.placed):
         arrays = {f"targets_cam{c}": np.asarray(slam.buf.targets[k][c] if not slam.tracker.exact_depth else np.zeros(0), np.float32) for c in range(len(slam.seq.rig))}
         arrays["mapped_depth"] = np.asarray(slam.mapper.placed[k], np.float64)
-        for c, d in enumerate(slam.tracker.sweep_depth.get(k, [])):
+        for c, d in enumerate(slam.tracker.depth_targets.sweeps.get(k, [])):
             arrays[f"sweep_depth_cam{c}"] = d
         digest = hashlib.blake2b(digest_size=10)
         for v in arrays.values():
@@ -145,7 +145,7 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
             raise InputError(keyframe_store(path), None, f"unreadable checkpoint keyframe file ({e}); start without --resume") from None
         slam.mapper.placed = {k: f["mapped_depth"] for k, f in files.items()}
-        slam.tracker.sweep_depth = {k: [f[f"sweep_depth_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items() if "sweep_depth_cam0" in f}
+        slam.tracker.depth_targets.sweeps = {k: [f[f"sweep_depth_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items() if "sweep_depth_cam0" in f}
         if not slam.tracker.exact_depth:  # estimated targets: restore them as they were
             depths = {k: [f[f"targets_cam{c}"] for c in range(len(slam.seq.rig))] for k, f in files.items()}
         else:

@@ -7,9 +7,10 @@ each solve (and recovery from a failed one); after the last frame, global MCBA.
 Its inputs are the sequence's frames; its state is the keyframe buffer's poses and depths
 (which it alone writes), the factor graph, the odometry and the keypoint tracks. What the map
 must do about it leaves as a list of updates (:meth:`Tracker.take_update`: poses that moved,
-depths that changed with their fresh mapping targets): the tracker never touches the map.
-Each frame's motion goes to its trajectory filler (:attr:`Tracker.filler`,
-:mod:`.trajectory_filler`), which places every frame after the run.
+depths that changed with their fresh mapping targets, :attr:`Tracker.depth_targets`,
+:mod:`.depth_targets`): the tracker never touches the map. Each frame's motion goes to its
+trajectory filler (:attr:`Tracker.filler`, :mod:`.trajectory_filler`), which places every
+frame after the run.
 """
 
 from __future__ import annotations
@@ -21,19 +22,20 @@ import numpy as np
 
 from ..ba.edges import TEMPORAL, camera_overlap, camera_pairs, sliding_window
 from ..ba.graph import FactorGraph
-from ..ba.jdsa import mcba_with_jdsa, scale_field
+from ..ba.jdsa import mcba_with_jdsa
 from ..ba.keypoint_tracks import KeypointTracks
 from ..ba.mcba import MCBA, MCBAConfig
 from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
-from ..frontend.depth import choose_prior, grid_depth, upsample_inverse_depth_guided
+from ..frontend.depth import choose_prior, grid_depth
 from ..frontend.flow import DISFlow, GuidedDIS, GuidedOrRaw, NoCorrespondences, SequenceGroundTruthFlow, StereoMatches
 from ..frontend.keyframes import KeyframeSelector
 from ..frontend.keypoint_odometry import KeypointOdometry
 from ..frontend.keypoint_tracker import KeypointTracker
-from ..frontend.stereo import RigStereo, upsample_nearest
+from ..frontend.stereo import RigStereo
 from ..mapping.follow import DepthMoved, PosesMoved
 from .config import RunConfig
+from .depth_targets import DepthTargets
 from .memory import release_freed_memory
 from .trajectory_filler import TrajectoryFiller, constant_velocity
 
@@ -83,7 +85,7 @@ class Tracker:
         self.lost: list = []  # keyframes whose tracking was lost (:meth:`_track_state`): not mapped
         self.kept: list = []  # keyframes whose dense solve failed twice where keypoints placed them or constant velocity carries them (not lost ones): MCBA holds that start and drops their temporal correspondences from then on (:meth:`_recover`)
         self._carried, self._lost_span = False, None  # the last keyframe kept the constant-velocity prediction; the open lost span [first frame, last frame, keyframes]
-        self.sweep_depth: dict = {}  # keyframe -> per camera [h,w] float16 depth (m, 0 none) of its rig-pair and time-baseline sweeps at sweep resolution (:meth:`_sweep_depth`)
+        self.depth_targets = DepthTargets(buffer, sequence.rig, self.prior, self.stereo, self.graph, self.exact_depth, self.metric_scale, tc.window)  # the mapper's, per keyframe
         self.health: list = []  # per keyframe solve (a recovered keyframe has two): frame, confident fraction, residual level, accepted steps, failure (why, or None)
         if not self.metric_scale:
             from ..errors import warn
@@ -328,7 +330,7 @@ class Tracker:
         if not mapped:
             return
         disp, poses = self.buf.disp.numpy(), self.buf.get_poses()  # read once, not per keyframe
-        weight = self._measured_weight(mapped)
+        weight = self.depth_targets.measured_weight(mapped)
         for k in mapped:
             new = np.where(disp[k] > 0, 1.0 / np.maximum(disp[k], 1e-12), 0.0)
             self._events.append(DepthMoved(k, poses[k].copy(), new, self.mapping_depths(self.seq[self.buf.frame_index[k]], k, disp[k], weight[k])))
@@ -423,14 +425,14 @@ class Tracker:
 
     def _keypoint_depth(self, k: int, c: int, uv: np.ndarray) -> np.ndarray:
         """Solved depth [M] (m, 0 where nothing measured it) of keyframe ``k``, camera ``c``,
-        at full-resolution pixels ``uv`` [M,2]: the nearest grid sample (:meth:`_constrained`)."""
+        at full-resolution pixels ``uv`` [M,2]: the nearest grid sample (:meth:`DepthTargets.constrained`)."""
         s, spec = self.buf.stride, self.seq.rig.cameras[c]
         g = np.rint((uv - s // 2) / s).astype(int)
         h, w = spec.height // s, spec.width // s
         inside = (g[:, 0] >= 0) & (g[:, 0] < w) & (g[:, 1] >= 0) & (g[:, 1] < h)
         gx, gy = np.clip(g[:, 0], 0, w - 1), np.clip(g[:, 1], 0, h - 1)
         disp = self.buf.disp[k].numpy()[c]
-        ok = self._constrained(k, self._measured_weight([k])[k])[c]
+        ok = self.depth_targets.constrained(k, self.depth_targets.measured_weight([k])[k])[c]
         d = disp[gy, gx]
         return np.where(inside & ok[gy, gx] & (d > 0), 1.0 / np.maximum(d, 1e-12), 0.0)
 
@@ -496,84 +498,10 @@ class Tracker:
             log.warning("keyframe %d: camera(s) %s overlap no view of the window; linked to keyframe %d", k, lonely, k - 1)
 
     def mapping_depths(self, frame, k: int, disp=None, weight=None) -> list:
-        """Full-resolution depth targets for mapping (which also seed its Gaussians): exact
-        sensor depth as is; otherwise the current estimate (MCBA depth where correspondences
-        or a prior constrain it, upsampled guided by the image, which fills up to a grid cell
-        around constrained samples), sharpened by the JDSA-scaled
-        prior where the two agree within 10 %, and where neither measured a pixel, the
-        keyframe's rig-pair and time-baseline sweep depth (:meth:`_sweep_depth`). (Keeping only well-measured
-        pixels as targets was tried: far regions then drift further, depth L1 0.34 -> 0.47 m.)"""
-        import cv2
-
-        if self.exact_depth:
-            return list(frame.depths)
-        buf, s = self.buf, self.buf.stride
-        disp = buf.disp.numpy()[k] if disp is None else disp
-        constrained = self._constrained(k, self._measured_weight([k])[k] if weight is None else weight)
-        depths = self.prior(frame, self.seq.rig) if self.prior.metric else [None] * len(self.seq.rig)
-        grids = buf.scales[k].numpy()  # [C,m,n]
-        swept = self._sweep_depth(k, frame)
-        out = []
-        for c, spec in enumerate(self.seq.rig.cameras):
-            h, w = spec.height // s, spec.width // s
-            full = upsample_inverse_depth_guided(np.where(constrained[c, :h, :w], disp[c, :h, :w], 0.0), spec, s, frame.images[c], device=buf.device)
-            if depths[c] is not None:
-                # the JDSA field lives on the buffer's grid (buf.h x buf.w), this camera's part [:h,:w]
-                field = scale_field(grids[c], buf.h, buf.w)[:h, :w].astype(np.float32)
-                scaled = depths[c] * cv2.resize(field, (spec.width, spec.height), interpolation=cv2.INTER_LINEAR)
-                agree = (scaled > 0) & (full > 0) & (np.abs(scaled - full) < 0.1 * full)
-                full = np.where(agree, scaled, full)
-            if swept is not None:
-                full = np.where(full > 0, full, upsample_nearest(swept[c], spec, self.stereo.cfg.scale).astype(np.float32))
-            out.append(full)
-        return out
-
-    def _sweep_depth(self, k: int, frame):
-        """Keyframe ``k``'s sweep depth, per camera [h,w] at sweep resolution (m, 0 = none),
-        or None (no rig pair, no source): :meth:`RigStereo.temporal_depth`, the view swept
-        against the same camera at up to ``tracking.stereo.temporal_sources`` keyframes of
-        the window at least ``temporal_baseline`` away where that sweep is confident, else
-        the rig pairs' depth. Sources: the nearest earlier keyframes whose poses tracking
-        measured (neither lost nor kept), else later ones (keyframe 0 is mapped after
-        keyframe 1), at the solved poses. Kept (float16) once a source is there; without
-        one, and for a kept keyframe (its pose may be a prediction), the rig pairs' depth
-        alone; None in a run without metric scale (its scale drifts while kept depth would
-        not). A side camera's near road at speed or a wall only one camera sees: DIS does
-        not match such motion and no rig pair sees it, so the fill guessed its depth; and
-        the pairs measure pixels MCBA left unconstrained (street seed 12, RGB only: depth
-        L1 1.28 -> 0.72 m with the time sweep, -> 0.67 m with both)."""
-        if k in self.sweep_depth:
-            return self.sweep_depth[k]
-        if not self.metric_scale:
-            return None
-        sc, buf, rig = self.stereo.cfg, self.buf, self.seq.rig
-        sources = []
-        if sc.temporal_sources > 0 and k not in self.kept:
-            poses, window = buf.get_poses(), self.cfg.tracking.window
-            near = list(range(k - 1, max(k - 1 - window, -1), -1)) + list(range(k + 1, min(k + 1 + window, len(buf))))
-            unverified = set(self.lost) | set(self.kept)
-            sources = [j for j in near if j not in unverified and np.linalg.norm(poses[j][:3, 3] - poses[k][:3, 3]) >= sc.temporal_baseline][: sc.temporal_sources]
-        if not sources and not self.stereo.pairs:
-            return None
-        views = [[] for _ in range(len(rig))]
-        for j in sources:
-            for c, spec in enumerate(rig.cameras):
-                views[c].append((buf.image(j, c), np.linalg.inv(poses[j] @ spec.T_b_c) @ poses[k] @ spec.T_b_c))
-        depth = self.stereo.temporal_depth(frame.index, frame.images, views)
-        if sources:
-            self.sweep_depth[k] = depth = [d.astype(np.float16) for d in depth]
-        return depth
-
-    def _measured_weight(self, keyframes) -> dict:
-        """Per keyframe [C,h,w]: summed correspondence confidence of every edge (active or
-        stored) leaving each of its grid pixels (:meth:`FactorGraph.measured_weight`)."""
-        return {k: self.graph.measured_weight(k, len(self.seq.rig)) for k in set(keyframes)}
-
-    def _constrained(self, k: int, weight: np.ndarray) -> np.ndarray:
-        """[C,h,w] bool: grid pixels of keyframe k whose depth something measured (confident
-        correspondences from the view, ``weight`` from :meth:`_measured_weight`, or a confident prior)."""
-        total = (self.buf.prior_conf[k].numpy() > 0.5) if self.prior.metric else np.zeros(weight.shape, bool)
-        return total | (weight >= 1.0)
+        """Keyframe ``k``'s full-resolution depth targets for mapping [H,W] per camera (m, 0 =
+        none; :meth:`DepthTargets.compute`), their sweep sources among the keyframes whose
+        poses tracking measured (neither :attr:`lost` nor :attr:`kept`)."""
+        return self.depth_targets.compute(frame, k, self.lost, self.kept, disp, weight)
 
     def given_pose(self, index: int):
         """A pose given for frame ``index`` (:class:`~mcgs_warp.system.posed_mapping.PosedTracker`), else None."""

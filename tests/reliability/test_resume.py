@@ -126,7 +126,7 @@ def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypat
 
     rig = Rig([CameraSpec("a", "pinhole", 8, 6, (5.0, 5.0, 3.5, 2.5)), CameraSpec("b", "pinhole", 4, 4, (3.0, 3.0, 1.5, 1.5))])
     rng = np.random.default_rng(0)
-    fake = SimpleNamespace(tracker=SimpleNamespace(exact_depth=False, sweep_depth={}), seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), mapper=SimpleNamespace(placed={}))
+    fake = SimpleNamespace(tracker=SimpleNamespace(exact_depth=False, depth_targets=SimpleNamespace(sweeps={})), seq=SimpleNamespace(rig=rig), buf=SimpleNamespace(targets={}), mapper=SimpleNamespace(placed={}))
     for k in range(5):
         fake.buf.targets[k] = [rng.random((6, 8)).astype(np.float32), rng.random((4, 4)).astype(np.float32)]
         fake.mapper.placed[k] = rng.random((2, 3, 4))
@@ -135,11 +135,11 @@ def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypat
     first = _save_keyframe_files(fake, tmp_path / "kf")
     assert len(written) == 5 and first == sorted(written)
     fake.buf.targets[3][1] = fake.buf.targets[3][1] + 1
-    fake.tracker.sweep_depth[3] = [rng.random((3, 4)).astype(np.float16), rng.random((2, 2)).astype(np.float16)]
+    fake.tracker.depth_targets.sweeps[3] = [rng.random((3, 4)).astype(np.float16), rng.random((2, 2)).astype(np.float16)]
     written.clear()
     second = _save_keyframe_files(fake, tmp_path / "kf")
     assert written == [second[3]] and second[3] != first[3] and second[:3] == first[:3]
     with np.load(tmp_path / "kf" / second[3]) as z:
         np.testing.assert_array_equal(z["targets_cam1"], fake.buf.targets[3][1])
         np.testing.assert_array_equal(z["mapped_depth"], fake.mapper.placed[3])
-        np.testing.assert_array_equal(z["sweep_depth_cam1"], fake.tracker.sweep_depth[3][1])
+        np.testing.assert_array_equal(z["sweep_depth_cam1"], fake.tracker.depth_targets.sweeps[3][1])

@@ -225,9 +225,9 @@ def test_sweeps_measure_what_mcba_leaves_unconstrained(tmp_path):
     except KeyboardInterrupt:
         pass
     tracker = slam.tracker
-    assert sorted(tracker.sweep_depth) == [0, 1, 2, 3, 4]
+    assert sorted(tracker.depth_targets.sweeps) == [0, 1, 2, 3, 4]
     with_sweep = {k: tracker.mapping_depths(seq[k], k) for k in range(5)}
-    tracker.sweep_depth.clear()
+    tracker.depth_targets.sweeps.clear()
     tracker.stereo.cfg.temporal_sources = 0
     without = {k: tracker.mapping_depths(seq[k], k) for k in range(5)}
     for c, spec in enumerate(seq.rig.cameras):
@@ -243,7 +243,7 @@ def test_sweeps_measure_what_mcba_leaves_unconstrained(tmp_path):
         assert np.median(swept) < 0.06 and np.median(swept) < 0.3 * np.median(guessed), (spec.name, np.median(swept), np.median(guessed))
     # The rig pairs' own sweeps give targets where MCBA left a pixel unconstrained (here without
     # the time sweep): pixels MCBA alone lacks, closer to the truth than the fill's guess
-    tracker._sweep_depth = lambda k, frame: None
+    tracker.depth_targets.sweep = lambda k, frame, lost, kept: None
     mcba = {k: tracker.mapping_depths(seq[k], k) for k in range(5)}
     paired = sorted({a for a, _b in tracker.stereo.pairs})
     assert paired, "the street rig has overlapping cameras"
