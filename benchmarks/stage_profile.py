@@ -44,7 +44,7 @@ STAGES = [
     ("mcgs_warp.mapping.mapper", "Mapper", "optimize", "mapping"),
     ("mcgs_warp.system.slam", None, "save_checkpoint", "checkpoint"),
     ("mcgs_warp.system.slam", "SLAM", "refine", "offline"),
-    ("mcgs_warp.system.tracker", "Tracker", "global_ba", "global BA"),
+    ("mcgs_warp.system.backend", "Backend", "run", "global BA"),
     ("mcgs_warp.system.slam", None, "photo_consistent_targets", "photo depth"),
     ("mcgs_warp.system.slam", None, "joint_refinement", "refinement"),
     ("mcgs_warp.system.run", None, "write_outputs", "outputs"),

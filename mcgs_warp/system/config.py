@@ -81,6 +81,7 @@ MAXIMUMS = {
     ("tracking.graph", "loop_max_angle"): (180.0, False, "degrees between optical axes"),
     ("tracking.graph", "min_overlap"): (1.0, False, "a share of the view"),
     ("tracking.graph", "loop_min_overlap"): (1.0, False, "a share of the view"),
+    ("refinement", "global_ba_min_overlap"): (1.0, False, "a share of the view"),
 }
 
 #: keys of a nested stage section that the run sets from another key: (section, key) -> which
@@ -127,8 +128,12 @@ class MappingRunConfig(MappingConfig):
 
 @dataclass
 class RefinementConfig:
+    """The offline stage's settings: the global-BA backend's (``global_ba_*``,
+    :mod:`~mcgs_warp.system.backend`), the photo-consistent depth targets' and joint refinement's."""
+
     global_ba_iterations: int = 4  # LM iterations of the offline MCBA over all keyframes (0: none)
     global_ba_radius: int = 6  # keyframes: its edges link overlapping views up to this far apart (longer baselines than online, so far depth is measured), plus confirmed loop edges
+    global_ba_min_overlap: float = 0.1  # reprojected overlap (a share of the view, both ways) a long edge needs: less than the window's tracking.graph.min_overlap, since guided flow matches what there is
     photo_depth_radius: int = 3  # keyframes: after global BA each estimated depth target is checked against the same camera this many keyframes either side and the rig's overlapping cameras (PatchMatch-style propagation; 0: off; never for exact sensor depth; runs with global BA, so global_ba_iterations 0 skips it too)
     photo_depth_min_views: int = 2  # after that pass a target pixel is kept only where at least this many of the same views' targets put the point within 5 % of it (geometric consistency, as multi-view stereo fusion; 0: keep all)
     iterations: int = 360  # joint refinement iterations (Adam steps) of map, poses and exposures (120 until 2026-11-27: seed 0 RGB only depth L1 0.106 -> 0.099 m, 28.94 -> 29.43 dB; held-out seed 1 0.100 -> 0.095 m; the demo 30.5 -> 30.8 dB)

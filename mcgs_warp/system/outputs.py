@@ -309,7 +309,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "correspondences": slam.cfg.tracking.correspondences,
         "n_gaussians": len(slam.mapper.map),
         "n_keyframes": len(buf),
-        "loop_edges": int(sum(bool(c.accepted) for c in slam.tracker.loops)),  # revisit candidates global BA confirmed
+        "loop_edges": int(sum(bool(c.accepted) for c in slam.backend.loops)),  # revisit candidates global BA confirmed
         "n_frames": len(seq),
         "seconds_total": float(seconds_total),
         "tracking_failures": len(slam.tracker.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)

@@ -7,9 +7,9 @@ start, depth prior, MCBA (+ JDSA) over the sliding window and the health of the 
 alone writes poses and depths and emits what the map must follow; the mapper
 (:class:`~mcgs_warp.mapping.mapper.Mapper`), which follows those updates, registers each new
 keyframe with the tracker's depth targets and runs mapping iterations over the window; after
-the last frame the offline stage (:meth:`SLAM.refine`: the tracker's global MCBA with long and
-loop edges, photo-consistent depth targets (:mod:`.offline`), joint refinement of map, poses
-and exposures). Bootstrap: without exact depth, keyframe 0 is mapped only after keyframe 1's
+the last frame the offline stage (:meth:`SLAM.refine`: the global-BA backend's MCBA with long
+and loop edges (:mod:`.backend`), photo-consistent depth targets (:mod:`.offline`), joint
+refinement of map, poses and exposures). Bootstrap: without exact depth, keyframe 0 is mapped only after keyframe 1's
 MCBA, so that no Gaussian is seeded from the constant start depth. The online state is
 checkpointed after every keyframe (:mod:`.checkpoint`). Deterministic for a seed.
 """
@@ -28,6 +28,7 @@ from ..data.trajectory import Trajectory
 from ..mapping.gaussian_map import GaussianMap
 from ..mapping.mapper import Mapper
 from ..mapping.refine import joint_refinement
+from .backend import Backend
 from .checkpoint import load_checkpoint, save_checkpoint
 from .config import RunConfig
 from .memory import release_freed_memory
@@ -69,8 +70,8 @@ class RunResult:
 
 
 class SLAM:
-    """The system: its stages (:attr:`tracker`, :attr:`mapper`), the loop over the frames
-    (:meth:`run`) and the offline stage (:meth:`refine`)."""
+    """The system: its stages (:attr:`tracker`, :attr:`mapper`, :attr:`backend`), the loop over
+    the frames (:meth:`run`) and the offline stage (:meth:`refine`)."""
 
     def __init__(self, sequence: Sequence, config: RunConfig, device=None, progress: Progress | None = None):
         self.seq = sequence
@@ -80,6 +81,7 @@ class SLAM:
         self.tracker = self.make_tracker()
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
         self.mapper.sky_depth_veto = self.tracker.exact_depth  # a region exact sensor depth measures is not sky
+        self.backend = Backend(self.tracker, config.refinement)
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
         self.poses_before_global_ba = None  # keyframe T_w_b before the offline MCBA (benchmarks/scaling.py: drift)
 
@@ -137,18 +139,19 @@ class SLAM:
         return RunResult(traj, kf_frames, curve, dict(self.seconds))
 
     def refine(self) -> None:
-        """The offline stage (paper Fig. 3, bottom): the tracker's global MCBA over every
-        keyframe (the map follows it), photo-consistent depth targets from the solved poses
+        """The offline stage (paper Fig. 3, bottom): the backend's global MCBA over every
+        keyframe with long and loop edges (:class:`~mcgs_warp.system.backend.Backend`; the map
+        follows it), then photo-consistent depth targets from the solved poses
         (:func:`~mcgs_warp.system.offline.photo_consistent_targets`; estimated depth only),
         then joint refinement of map, poses and exposures."""
         rc, tracker = self.cfg.refinement, self.tracker
         t0 = time.perf_counter()
         self.poses_before_global_ba = self.buf.get_poses()
-        if rc.global_ba_iterations and len(self.buf) > 1:
+        if self.backend.active:
             self.progress("global BA", 0, 1, force=True)
             self.mapper.forget_loss_targets()  # global BA's arrays over every edge are the run's peak
             release_freed_memory()
-            self.mapper.follow(tracker.global_ba(rc.global_ba_iterations, rc.global_ba_radius), self.seq.rig)
+            self.mapper.follow(self.backend.run(), self.seq.rig)
             release_freed_memory()
             self.seconds["global_ba"] = time.perf_counter() - t0
             self.progress("global BA", 1, 1, force=True)

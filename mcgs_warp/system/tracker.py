@@ -2,7 +2,9 @@
 odometry and keyframe test; per new keyframe its start (keypoint odometry, keypoint PnP or
 constant velocity), depth prior, MCBA (+ JDSA) over the sliding window on the factor graph's
 edges with correspondences measured and re-measured from the current geometry, the health of
-each solve (and recovery from a failed one); after the last frame, global MCBA.
+each solve (and recovery from a failed one). After the last frame the global-BA backend
+(:mod:`.backend`) extends its factor graph and solves over every keyframe with its
+:meth:`Tracker.measure` and :meth:`Tracker.solve`.
 
 Its inputs are the sequence's frames; its state is the keyframe buffer's poses and depths
 (which it alone writes), the factor graph, the odometry and the keypoint tracks. What the map
@@ -36,17 +38,15 @@ from ..frontend.stereo import RigStereo
 from ..mapping.follow import DepthMoved, PosesMoved
 from .config import RunConfig
 from .depth_targets import DepthTargets
-from .memory import release_freed_memory
 from .trajectory_filler import TrajectoryFiller, constant_velocity
 
 log = logging.getLogger("mcgs_warp.slam")
 INITIAL_DEPTH = 3.0  # m: MCBA's start where nothing is known yet (DROID-SLAM starts from a constant too)
-GLOBAL_BA_MIN_OVERLAP = 0.1  # long edges need less shared view: guided flow matches what there is
 
 
 class Tracker:
     """The tracking stage: its parts (below), :meth:`track` per frame, :meth:`add_keyframe`
-    per keyframe, :meth:`global_ba` after the last."""
+    per keyframe."""
 
     def __init__(self, sequence: Sequence, config: RunConfig, buffer: KeyframeBuffer):
         self.seq = sequence
@@ -77,7 +77,6 @@ class Tracker:
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0, variance_components=tc.variance_components))
         self.graph = FactorGraph(self.buf, self.overlap, replace(tc.graph, max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
-        self.loops: list = []  # LoopCheck of every revisit candidate global BA examined
         self._events: list = []  # what the map must follow since the last update (:meth:`take_update`)
         self.filler = TrajectoryFiller(buffer, sequence.timestamps, self.frame_poses)  # every frame's pose, from the keyframes' and each frame's motion
         self._anchor = None  # the newest keyframe's keypoint pose (PnPResult) or None
@@ -165,7 +164,13 @@ class Tracker:
             # and a metric prior too: KITTI SE(3) ATE 0.771 vs 0.778 m, fewer confident matches)
             g.compute(self.guided if guided_new else self.guided_or_raw if self.exact_depth else self.flow, missing[~cross])
 
-    def _solve(self, keyframes, fresh=(), guided_new: bool = False, config=None) -> list:
+    @property
+    def guided_flow(self):
+        """The correspondences that match around the current geometry (:class:`GuidedDIS`, or
+        the oracle of ``--correspondences ground-truth`` / ``none``): what confirms loops."""
+        return self.oracle or self.guided
+
+    def solve(self, keyframes, fresh=(), guided_new: bool = False, config=None) -> list:
         """MCBA (+ JDSA) over the graph's active edges among ``keyframes`` in ``flow_rounds``
         outer rounds; between rounds the correspondences of edges touching ``fresh``
         keyframes follow the new geometry. Each pose change, and each depth change of a mapped
@@ -386,7 +391,7 @@ class Tracker:
             window = sliding_window(len(buf), tc.window)
             self.graph.update_window(window, cross_view=self.overlap is not None)
             self._link_newest(k)
-            why = self._health(k, self._solve(window, fresh=set(window[-tc.temporal_radius - 1 :])))
+            why = self._health(k, self.solve(window, fresh=set(window[-tc.temporal_radius - 1 :])))
             tracked = why is None or self._recover(k, window, T_init, disp, why)
             self._track_state(k, tracked)
         return k
@@ -468,7 +473,7 @@ class Tracker:
         self.graph.forget(own)
         self.graph.add(own)
         self.graph.compute(self.guided_or_raw, self.graph.missing())
-        second = self._health(k, self._solve(window))
+        second = self._health(k, self.solve(window))
         placed = self._anchor is not None or by_odometry
         if second is None and placed:
             warn(None, f"frame {frame} (keyframe {k}): tracking failure ({why}); recovered from {how}")
@@ -529,20 +534,3 @@ class Tracker:
     @property
     def _keyframe_of(self) -> dict:
         return {int(f): k for k, f in enumerate(self.buf.frame_index)}
-
-    def global_ba(self, iterations: int, radius: int) -> list:
-        """The offline MCBA over every keyframe (paper Fig. 3, bottom): long edges between
-        overlapping views up to ``radius`` keyframes apart, then confirmed loop edges, matched
-        guided by the online solution, ``iterations`` LM iterations. Without exact depth the
-        prior's weight is 0: an inexact prior, JDSA-scaled to the online estimate, would only
-        hold that estimate in place. Returns what the map must follow (:meth:`take_update`)."""
-        everything = list(range(len(self.buf)))
-        long_edges = replace(self.graph.cfg, max_per_view=2 * radius, min_overlap=GLOBAL_BA_MIN_OVERLAP)
-        self.graph.update_window(everything, cross_view=self.overlap is not None, max_gap=radius, config=long_edges)
-        self.measure(guided_new=True)
-        self.loops = self.graph.close_loops(self.oracle or self.guided)
-        release_freed_memory()  # the matching's temporaries, before the solve's arrays over every edge
-        offline = replace(self.mcba.cfg, iterations=iterations, prior_weight=self.mcba.cfg.prior_weight if self.exact_depth else 0.0)
-        self._solve(everything, guided_new=True, config=offline)
-        return self.take_update()
-
