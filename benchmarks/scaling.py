@@ -52,7 +52,7 @@ def drift(T):
 
 m["drift_before_global_ba_m"] = drift(slam.poses_before_global_ba)
 m["drift_after_global_ba_m"] = drift(slam.buf.get_poses())
-m["loops_confirmed"] = sum(bool(c.accepted) for c in slam.backend.loops)
+m["loops_confirmed"] = slam.backend.confirmed_loops
 m["loops_examined"] = len(slam.backend.loops)
 m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps(m))

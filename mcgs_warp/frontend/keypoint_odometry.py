@@ -33,6 +33,7 @@ from ..ba.keypoint_factors import KeypointFactors
 from ..ba.lm import Damping, damped_step
 from ..ba.pose_factors import RelativePoseFactors
 from ..ba.keypoint_tracks import KeypointTracks
+from ..data.trajectory import Trajectory
 from ..kernels.camera import FAR
 from ..geometry import adjoint, invert, se3_exp
 from ..rig import Rig
@@ -239,6 +240,15 @@ class KeypointOdometry:
             self.tracker.keep(i, views)
             self.tracks.add_views(i, views)
         self.tracks.load_state_arrays(a, "odometry.tracks.")
+
+    def trajectory(self, timestamps) -> Trajectory | None:
+        """Its own trajectory (rig body ``T_w_b``, its world frame: the first frame's pose) over
+        every frame it placed, timed by ``timestamps`` [N] (s, the sequence's); None if it
+        placed none."""
+        if not self.poses:
+            return None
+        fs = sorted(self.poses)
+        return Trajectory(np.asarray(timestamps, np.float64)[fs], np.stack([self.poses[f] for f in fs]))
 
     def relative(self, a: int, b: int) -> np.ndarray:
         """``T_a^-1 T_b`` [4,4]: the rig's motion from frame ``a`` to frame ``b``."""

@@ -37,6 +37,11 @@ class Backend:
         """Whether there is a global BA to run: iterations and at least two keyframes."""
         return bool(self.iterations) and len(self.tracker.buf) > 1
 
+    @property
+    def confirmed_loops(self) -> int:
+        """How many of the revisit candidates :meth:`run` examined it confirmed (loop edges added)."""
+        return sum(bool(c.accepted) for c in self.loops)
+
     def run(self) -> list:
         """The offline MCBA over every keyframe: long edges between overlapping views up to
         :attr:`radius` keyframes apart, then confirmed loop edges, matched guided by the

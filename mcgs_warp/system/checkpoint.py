@@ -2,7 +2,11 @@
 small arrays, and beside it the large ones, written only when they change (the factor graph's
 correspondence segments, one content-named file per mapped keyframe's depth targets).
 
-Functions of the whole system (:class:`~mcgs_warp.system.slam.SLAM`): its stages' state.
+Functions of the whole system (:class:`~mcgs_warp.system.slam.SLAM`): each stage saves and
+restores its own state (``state_arrays`` / ``load_state_arrays``: the tracker with its parts'
+and its trajectory filler's, :class:`~mcgs_warp.system.tracker.Tracker`; the mapper's); this
+module adds the keyframe buffer's arrays and the per-keyframe files and writes them together.
+The global-BA backend runs after the last checkpoint and has none.
 """
 
 from __future__ import annotations
@@ -17,9 +21,10 @@ import numpy as np
 #: 5: per-keyframe depth files beside the checkpoint; 6: the keyframe test's flows; 7: image motion between frames instead, keypoint tracks;
 #: 8: the keypoint odometry; 9: the background's cube map, sky masks; 10: MCBA's measured residual noise, kept keyframes;
 #: 11: the odometry's two-view frames; 12: their measured steps; 13: keyframes' time-baseline depth;
-#: 14: keyframes' sweep depth, the rig pairs' behind the time sweep), so that
+#: 14: keyframes' sweep depth, the rig pairs' behind the time sweep; 15: the tracker's books and the filler's motions
+#: as the stages' own arrays, tracker.books and filler.*, no longer in meta), so that
 #: --resume refuses an older checkpoint by name instead of failing on a missing array.
-CHECKPOINT_FORMAT = 14
+CHECKPOINT_FORMAT = 15
 
 
 def save_checkpoint(slam, path, next_frame: int, kf_frames: list) -> None:
@@ -44,13 +49,10 @@ def save_checkpoint(slam, path, next_frame: int, kf_frames: list) -> None:
         timestamps=np.array(buf.timestamps),
         frame_index=np.array(buf.frame_index, dtype=np.int64),
         kf_frames=np.array(kf_frames, dtype=np.int64),
-        **slam.tracker.graph.state_arrays(correspondence_store(path)),
-        **(slam.tracker.tracks.state_arrays() if slam.tracker.tracks is not None else {}),
-        **(slam.tracker.odometry.state_arrays() if slam.tracker.odometry is not None else {}),
-        **slam.tracker.mcba.state_arrays(),
+        **slam.tracker.state_arrays(correspondence_store(path)),
         mapped_keys=np.array(sorted(slam.mapper.placed), dtype=np.int64),
         keyframe_files=np.array(_save_keyframe_files(slam, keyframe_store(path)), dtype=str).reshape(-1),
-        meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": slam.cfg.to_dict(), "n_frames": len(slam.seq), "seconds": slam.seconds, "health": slam.tracker.health, "lost": slam.tracker.lost, "kept": slam.tracker.kept, "carried": slam.tracker._carried, "lost_span": slam.tracker._lost_span, "frame_motion": {str(k): v for k, v in slam.tracker.filler.motion.items()}})),
+        meta=np.array(json.dumps({"format": CHECKPOINT_FORMAT, "next_frame": next_frame, "config": slam.cfg.to_dict(), "n_frames": len(slam.seq), "seconds": slam.seconds})),
     )
     with atomic_write(path, "wb") as f:
         np.savez(f, **arrays)
@@ -110,11 +112,6 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
         for k, fi in enumerate(a["frame_index"]):
             frame = slam.seq[int(fi)]
             buf.add(int(fi), float(a["timestamps"][k]), frame.images, np.eye(4), a["disp"][k], depth_prior=a["depth_prior"][k], prior_conf=a["prior_conf"][k])
-            if slam.tracker.keypoints is not None:  # deterministic from the images: detected again, not stored
-                views = slam.tracker.keypoints.detect(frame.images, frame.depths if slam.tracker.exact_depth else None)
-                slam.tracker.keypoints.keep(k, views)
-                if slam.tracker.tracks is not None:
-                    slam.tracker.tracks.add_views(k, views)
         wp.copy(buf.poses, wp.array(a["poses"], dtype=wp.transform, device=buf.device), count=len(a["poses"]))
         grids = buf.scales.numpy()
         grids[: len(a["scales"])] = a["scales"]
@@ -122,21 +119,7 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
         exposure = buf.exposure.numpy()
         exposure[: len(a["exposure"])] = a["exposure"][: len(exposure)]
         buf.exposure.assign(exposure)
-        if slam.tracker.tracks is not None:
-            try:
-                slam.tracker.tracks.load_state_arrays(a)
-            except ValueError as e:
-                raise InputError(path, "tracks.parent", f"{e}; start without --resume") from None
-        if slam.tracker.odometry is not None:
-            try:
-                slam.tracker.odometry.load_state_arrays(a, lambda i: slam.tracker.keypoints.detect(slam.seq[i].images, slam.seq[i].depths if slam.tracker.exact_depth else None))
-            except ValueError as e:
-                raise InputError(path, "odometry.tracks.parent", f"{e}; start without --resume") from None
-        slam.tracker.mcba.load_state_arrays(a)
-        try:
-            slam.tracker.graph.load_state_arrays(a, correspondence_store(path))
-        except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
-            raise InputError(correspondence_store(path), None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
+        slam.tracker.load_state_arrays(a, correspondence_store(path), path)
         try:
             files = {}
             for k, name in zip(a["mapped_keys"], a["keyframe_files"]):
@@ -152,10 +135,6 @@ def load_checkpoint(slam, path) -> tuple[int, list]:
             depths = {k: slam.tracker.mapping_depths(slam.seq[int(fi)], k) for k, fi in enumerate(a["frame_index"])}
         slam.mapper.load_state_arrays({k[7:]: v for k, v in a.items() if k.startswith("mapper.")}, depths)
         slam.seconds = meta["seconds"]
-        slam.tracker.health = meta["health"]
-        slam.tracker.lost, slam.tracker._carried, slam.tracker._lost_span = [int(k) for k in meta["lost"]], bool(meta["carried"]), meta["lost_span"]
-        slam.tracker.kept = [int(k) for k in meta["kept"]]
-        slam.tracker.filler.motion = {int(k): float(v) for k, v in meta["frame_motion"].items()}
         kf_frames = [int(v) for v in a["kf_frames"]]
     except KeyError as e:
         raise InputError(path, None, f"unreadable checkpoint (no array {e}); start without --resume") from None

@@ -198,16 +198,6 @@ def _quantiles(values) -> dict | None:
     return {"min": round(float(np.min(values)), 4), "median": round(float(np.median(values)), 4)} if len(values) else None
 
 
-def odometry_trajectory(slam) -> Trajectory | None:
-    """The keypoint odometry alone (rig body, its own world frame: the first frame's pose), every
-    frame it placed; None without it (a run from given poses, keypoints off)."""
-    odo = slam.tracker.odometry
-    if odo is None or not odo.poses:
-        return None
-    fs = sorted(odo.poses)
-    return Trajectory(np.asarray(slam.seq.timestamps, np.float64)[fs], np.stack([odo.poses[f] for f in fs]))
-
-
 def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     out = Path(out_dir)
     seq, buf, rig = slam.seq, slam.buf, slam.seq.rig
@@ -224,7 +214,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
     write_ply(out / "map.ply", params)
     save_rig(rig, out / "rig.yaml")
     write_tum(out / "keyframes.txt", Trajectory(np.array(buf.timestamps), kf_poses))
-    odometry = odometry_trajectory(slam)
+    odometry = slam.tracker.odometry.trajectory(seq.timestamps) if slam.tracker.odometry is not None else None  # none from given poses or with keypoints off
     if odometry is not None:
         write_tum(out / "trajectory_odometry.txt", odometry)
 
@@ -309,7 +299,7 @@ def write_outputs(out_dir, slam, result, seconds_total: float) -> dict:
         "correspondences": slam.cfg.tracking.correspondences,
         "n_gaussians": len(slam.mapper.map),
         "n_keyframes": len(buf),
-        "loop_edges": int(sum(bool(c.accepted) for c in slam.backend.loops)),  # revisit candidates global BA confirmed
+        "loop_edges": slam.backend.confirmed_loops,  # revisit candidates global BA confirmed
         "n_frames": len(seq),
         "seconds_total": float(seconds_total),
         "tracking_failures": len(slam.tracker.failures),  # keyframe solves judged failed (each one warning line, then recovered or kept at the prediction)

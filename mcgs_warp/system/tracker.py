@@ -17,7 +17,9 @@ frame after the run.
 
 from __future__ import annotations
 
+import json
 import logging
+import zipfile
 from dataclasses import replace
 
 import numpy as np
@@ -422,6 +424,57 @@ class Tracker:
         end = f"tracking resumed at frame {resumed_at}" if resumed_at is not None else "it never resumed"
         warn(None, f"frames {a}-{b} ({n} keyframe{'s' if n > 1 else ''}): tracking lost, nothing relocalized them; their poses are the constant-velocity prediction and they are not mapped; {end}")
         self._lost_span = None
+
+    def state_arrays(self, store) -> dict:
+        """The tracking stage's state for a checkpoint (``np.savez``): its parts' arrays (the
+        factor graph's, whose correspondences go to segment files in the folder ``store``;
+        the keypoint tracks', the keypoint odometry's, MCBA's measured noise, the trajectory
+        filler's) and its own books as JSON in ``tracker.books`` (every solve's health, the
+        lost and kept keyframes, whether the last one kept the constant-velocity prediction,
+        the open lost span). Keypoints are not stored: :meth:`load_state_arrays` detects them
+        again. The mapping depth targets (:attr:`depth_targets`) travel per keyframe beside
+        the checkpoint (:mod:`.checkpoint`)."""
+        books = {"health": self.health, "lost": self.lost, "kept": self.kept, "carried": self._carried, "lost_span": self._lost_span}
+        return {**self.graph.state_arrays(store), **(self.tracks.state_arrays() if self.tracks is not None else {}),
+                **(self.odometry.state_arrays() if self.odometry is not None else {}), **self.mcba.state_arrays(),
+                **self.filler.state_arrays(), "tracker.books": np.array(json.dumps(books))}
+
+    def load_state_arrays(self, a: dict, store, source) -> None:
+        """Restore :meth:`state_arrays` (``store``: its correspondence folder) into a tracker
+        whose keyframe buffer holds the saved keyframes; the keypoints of every keyframe and
+        of the odometry's recent frames are detected again (deterministic from the images).
+        A missing array raises KeyError; tracks or correspondences that do not fit raise
+        :class:`~mcgs_warp.errors.InputError` naming ``source`` (the checkpoint) or ``store``."""
+        from ..errors import InputError
+
+        def detect(i):
+            return self.keypoints.detect(self.seq[i].images, self.seq[i].depths if self.exact_depth else None)
+
+        if self.keypoints is not None:
+            for k, i in enumerate(self.buf.frame_index):
+                views = detect(int(i))
+                self.keypoints.keep(k, views)
+                if self.tracks is not None:
+                    self.tracks.add_views(k, views)
+        try:
+            if self.tracks is not None:
+                self.tracks.load_state_arrays(a)
+        except ValueError as e:
+            raise InputError(source, "tracks.parent", f"{e}; start without --resume") from None
+        try:
+            if self.odometry is not None:
+                self.odometry.load_state_arrays(a, detect)
+        except ValueError as e:
+            raise InputError(source, "odometry.tracks.parent", f"{e}; start without --resume") from None
+        self.mcba.load_state_arrays(a)
+        try:
+            self.graph.load_state_arrays(a, store)
+        except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(store, None, f"unreadable checkpoint correspondences ({e}); start without --resume") from None
+        self.filler.load_state_arrays(a)
+        books = json.loads(str(a["tracker.books"]))
+        self.health, self.lost, self.kept = books["health"], [int(k) for k in books["lost"]], [int(k) for k in books["kept"]]
+        self._carried, self._lost_span = bool(books["carried"]), books["lost_span"]
 
     @property
     def _solved_points(self):

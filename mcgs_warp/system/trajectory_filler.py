@@ -41,6 +41,15 @@ class TrajectoryFiller:
         """Frame ``index``'s image motion (rad) since the frame before it."""
         self.motion[index] = motion
 
+    def state_arrays(self) -> dict:
+        """The filler's state for a checkpoint: the frames with a recorded motion
+        (``filler.frames`` [F] int64) and their motions (``filler.motion`` [F] float64, rad)."""
+        return {"filler.frames": np.array(list(self.motion), np.int64), "filler.motion": np.array(list(self.motion.values()), np.float64)}
+
+    def load_state_arrays(self, a: dict) -> None:
+        """Restore :meth:`state_arrays`."""
+        self.motion = {int(i): float(m) for i, m in zip(a["filler.frames"], a["filler.motion"], strict=True)}
+
     def trajectory(self) -> Trajectory:
         """Rig poses for every frame: keyframes as estimated; a frame between two keyframes
         that ``placed`` places (every frame of the span) is its pose there moved by the

@@ -105,3 +105,18 @@ def test_span_is_the_frames_between():
     for a in range(-1, 15):
         for b in range(-1, 15):
             assert odo.span(a, b) == [f for f in odo.frames if a < f <= b], (a, b)
+
+
+def test_its_trajectory_is_every_frame_it_placed_in_frame_order():
+    """``trajectory(timestamps)``: the placed frames' poses in frame order, timed by the
+    sequence's timestamps of those frames (not by their position); None before any."""
+    odo = KeypointOdometry.__new__(KeypointOdometry)
+    odo.poses = {}
+    assert odo.trajectory([0.0, 0.1]) is None
+    T = {f: np.eye(4) for f in (4, 1, 2)}
+    for f in T:
+        T[f][0, 3] = 10.0 * f
+    odo.poses = T
+    traj = odo.trajectory(np.arange(6) * 0.5 + 100.0)
+    np.testing.assert_array_equal(traj.timestamps, [100.5, 101.0, 102.0])
+    np.testing.assert_array_equal(traj.positions[:, 0], [10.0, 20.0, 40.0])

@@ -24,7 +24,7 @@ class StandInTracker:
         self.overlap, self.exact_depth = overlap, exact_depth
         self.guided_flow = object()
         self.mcba = SimpleNamespace(cfg=MCBAConfig(iterations=7, prior_weight=30.0))
-        self.loop_checks = ["check a", "check b"]
+        self.loop_checks = [SimpleNamespace(accepted=True), SimpleNamespace(accepted=False), SimpleNamespace(accepted=True)]
         tracker = self
 
         class Graph:
@@ -58,6 +58,7 @@ def _refinement(tmp_path, text):
 
 def test_settings_come_from_the_refinement_section(tmp_path):
     default = Backend(StandInTracker(3, False), load_run_config().refinement)
+    assert default.loops == [] and default.confirmed_loops == 0  # before run
     assert (default.iterations, default.radius, default.min_overlap) == (4, 6, 0.1)  # 0.1: the long edges' overlap the tracker's module constant had
     rc = _refinement(tmp_path, "refinement:\n  global_ba_iterations: 3\n  global_ba_radius: 5\n  global_ba_min_overlap: 0.25\n")
     backend = Backend(StandInTracker(3, False), rc)
@@ -83,7 +84,7 @@ def test_run_links_long_edges_closes_loops_and_solves_every_keyframe(tmp_path, e
     assert long_edges == GraphConfig(min_overlap=0.25, max_per_view=10, loop_max_per_view=3)  # 2 x radius partners; the graph's other settings kept
     assert tracker.calls[1] == ("measure", (), True)
     assert tracker.calls[2] == ("close_loops", tracker.guided_flow)
-    assert backend.loops == ["check a", "check b"]
+    assert backend.loops == tracker.loop_checks and backend.confirmed_loops == 2
     _, keyframes, fresh, guided_new, offline = tracker.calls[3]
     assert keyframes == [0, 1, 2, 3, 4] and fresh == () and guided_new
     assert offline == MCBAConfig(iterations=3, prior_weight=30.0 if exact_depth else 0.0)  # an inexact prior would hold the online estimate

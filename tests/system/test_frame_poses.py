@@ -81,3 +81,20 @@ def test_a_keyframe_starts_at_the_rigs_velocity_in_time():
         v = rng.normal(size=6)
         v[3:] *= angle / np.linalg.norm(v[3:])
         np.testing.assert_allclose(se3_log(se3_exp(v)), v, atol=1e-9)
+
+
+def test_the_fillers_motions_round_trip_through_its_checkpoint_arrays():
+    """A resumed run's filler places the frames as the interrupted one would: the recorded
+    motions (a pause over frames 1-3) come back exactly, and with them the paused poses."""
+    T5 = np.eye(4)
+    T5[:3, 3] = [2.0, 0.0, 0.0]
+    keyframes, stamps = _keyframes(np.stack([np.eye(4), T5]), [0.0, 0.5], [0, 5]), np.arange(6) * 0.1
+    saved = TrajectoryFiller(keyframes, stamps, lambda fa, fb: None)
+    for f, m in {1: 0.001, 2: 0.0005, 3: 1 / 3 * 0.003, 4: 0.05, 5: 0.05}.items():
+        saved.record(f, m)
+    arrays = saved.state_arrays()
+    np.testing.assert_array_equal(arrays["filler.frames"], [1, 2, 3, 4, 5])
+    restored = TrajectoryFiller(keyframes, stamps, lambda fa, fb: None)
+    restored.load_state_arrays(arrays)
+    assert restored.motion == saved.motion and all(type(m) is float for m in restored.motion.values())
+    np.testing.assert_allclose(restored.trajectory().positions[:, 0], [0.0, 0.0, 0.0, 0.0, 1.0, 2.0], atol=1e-12)
