@@ -107,9 +107,9 @@ def test_a_lost_span_is_said_once_and_left_out_of_the_map(tmp_path, capfd):
     assert metrics["tracking_lost_frames"] == [5, 6, 7]  # frame 4 is the one constant velocity may carry
     assert "frames 5-7 (3 keyframes)" in lost[0] and "tracking resumed at frame 8" in lost[0]
     with np.load(tmp_path / "run" / "checkpoint.npz") as z:
-        mapped, meta = z["mapped_keys"].tolist(), json.loads(str(z["meta"]))
+        mapped, books = z["mapped_keys"].tolist(), json.loads(str(z["tracker.books"]))
     assert not {5, 6, 7} & set(mapped) and {0, 8, 10} <= set(mapped)
-    assert meta["kept"] == [4]  # held at the prediction that carries it; the lost ones are not held (their matches kept)
+    assert books["kept"] == [4]  # held at the prediction that carries it; the lost ones are not held (their matches kept)
 
 
 @pytest.mark.parametrize("depth_weight", [30.0, 0.0], ids=["depth-residual", "without"])
