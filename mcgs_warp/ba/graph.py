@@ -246,6 +246,17 @@ class FactorGraph:
         self.add(chosen)
         return self.missing()
 
+    def link_to_previous(self, k: int, n_cameras: int) -> list:
+        """A new keyframe ``k`` whose views overlap no one else's by the graph's measure (a
+        fast turn, a poor constant-velocity start) would not be tracked at all: link each such
+        camera to the previous keyframe's same camera both ways (temporal edges), as
+        DROID-SLAM always keeps the nearest edge. Returns the cameras linked so."""
+        linked = {int(ci) for i, ci, j, _cj, _kind in self.edges if i == k and j != k}
+        lonely = [c for c in range(n_cameras) if c not in linked]
+        if lonely:
+            self.add([(k, c, k - 1, c, TEMPORAL) for c in lonely] + [(k - 1, c, k, c, TEMPORAL) for c in lonely])
+        return lonely
+
     def close_loops(self, provider, keyframes=None) -> list:
         """Find revisits among ``keyframes`` (default: all) by pose proximity and overlap
         (:func:`loop_candidates`, skipping edges the graph already knows), confirm them with

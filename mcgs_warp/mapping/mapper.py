@@ -40,6 +40,7 @@ from ..geometry import adjoint
 from ..kernels import Views, blend, render, render_backward
 from ..kernels import background as bg
 from ..kernels.se3 import mat66
+from .follow import KeyframeUpdate
 from .gaussian_map import DensifyReport, GaussianMap, logit
 from .losses import MappingLoss
 from .optimizer import Adam, flat
@@ -93,14 +94,16 @@ class StepResult:
 
 
 class Mapper:
-    """Mapping over the keyframes of ``buffer``: ``add_keyframe`` registers a keyframe and
-    its depth targets, ``step``/``optimize`` run Adam iterations.
+    """Mapping over the keyframes of ``buffer``: ``apply`` takes the tracker's keyframe update
+    (``follow`` its moves, ``add_keyframe`` registers a keyframe and its depth targets),
+    ``step``/``optimize`` run Adam iterations. ``sky_depth_veto``: the run has exact sensor
+    depth, and a region it measures is not sky (:func:`~.sky.sky_mask`).
 
     The keyframe state it trains against lives in the buffer: ``buffer.exposure`` (per
     image ``(log a, b)``, colour ``a * C + b``) and ``buffer.targets`` (the registered
     keyframes' depth targets)."""
 
-    def __init__(self, buffer: KeyframeBuffer, gmap: GaussianMap | None = None, config: MappingConfig | None = None, seed: int = 0):
+    def __init__(self, buffer: KeyframeBuffer, gmap: GaussianMap | None = None, config: MappingConfig | None = None, seed: int = 0, sky_depth_veto: bool = False):
         self.buf = buffer
         self.map = gmap or GaussianMap(buffer.device)
         self.cfg = config or MappingConfig()
@@ -110,7 +113,7 @@ class Mapper:
         self.optimize_exposure = False
         self.optimize_poses = False
         self.sky: dict[int, list] = {}  # keyframe -> per camera [H,W] bool sky mask (mapping/sky.py)
-        self.sky_depth_veto = False  # True with exact sensor depth: a region it measures is not sky
+        self.sky_depth_veto = sky_depth_veto  # True with exact sensor depth: a region it measures is not sky
         self.placed: dict = {}  # keyframe -> grid depth [C,h,w] its Gaussians were last placed with (:meth:`follow`)
         self.fixed_poses: set[int] = {0}
         self.adam = self._new_adam()
@@ -209,6 +212,13 @@ class Mapper:
         added = self.map.insert_from_depth(self.buf.rig, self.buf.get_poses()[k], images, depths, anchor=k, stride=self.cfg.insert_stride, mask=mask, max_depth=self.cfg.insert_max_depth, fill=self.cfg.insert_fill, fill_opacity=self.cfg.fill_opacity)
         self._remap_optimizer(np.concatenate([np.arange(before), -np.ones(added, int)]))
         return added
+
+    def apply(self, update: KeyframeUpdate, rig) -> None:
+        """A new keyframe's update from tracking, in order: follow what its solve moved
+        (:meth:`follow`), then register the keyframes it names (:meth:`add_keyframe`)."""
+        self.follow(update.moved, rig)
+        for r in update.register:
+            self.add_keyframe(r.k, r.targets, placed=r.placed)
 
     def follow(self, updates, rig) -> None:
         """The map follows tracking's updates in order (:mod:`.follow`): a keyframe's anchored
@@ -453,6 +463,13 @@ class Mapper:
             if progress is not None:
                 progress(it, results[-1])
         return results
+
+    def optimize_window(self, window, iterations: int) -> list[StepResult]:
+        """:meth:`optimize` over the registered keyframes of ``window`` (the tracker's sliding
+        window, :attr:`KeyframeUpdate.window`); nothing while no keyframe is registered."""
+        if not self.buf.targets:
+            return []
+        return self.optimize(iterations, keyframes=[k for k in window if k in self.buf.targets])
 
     def evaluate(self, views) -> float:
         """Mean PSNR (dB) of renders against images: ``views`` is [(T_w_b, [image per camera])]."""

@@ -8,7 +8,8 @@ factor graph's correspondence weights, the depth prior and the rig's sweep stere
 the keyframe's frame and the keyframes whose poses tracking lost or kept (they are no sweep
 sources). State: each keyframe's sweep depth, computed once (:attr:`DepthTargets.sweeps`,
 checkpointed). Output: full-resolution depth per camera. The tracker asks for them when the
-mapper registers a keyframe and whenever a solve moves a mapped keyframe's depth.
+mapper registers a keyframe and whenever a solve moves a mapped keyframe's depth
+(:meth:`DepthTargets.moved`); and for the solved depth at keypoints (:meth:`DepthTargets.solved_at`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from ..ba.jdsa import scale_field
 from ..buffer import KeyframeBuffer
 from ..frontend.depth import DepthPrior, upsample_inverse_depth_guided
 from ..frontend.stereo import RigStereo, upsample_nearest
+from ..mapping.follow import DepthMoved
 from ..rig import Rig
 
 
@@ -122,3 +124,42 @@ class DepthTargets:
         correspondences from the view, ``weight`` from :meth:`measured_weight`, or a confident prior)."""
         total = (self.buf.prior_conf[k].numpy() > 0.5) if self.prior.metric else np.zeros(weight.shape, bool)
         return total | (weight >= 1.0)
+
+    def moved(self, keyframes, sequence, lost, kept) -> list:
+        """For estimated depth: the new grid depth of every mapped keyframe of ``keyframes``,
+        its pose and its fresh mapping depth targets (:meth:`compute`; ``sequence``: the
+        keyframes' frames, ``lost``, ``kept`` as there), for the map to follow
+        (:class:`~mcgs_warp.mapping.follow.DepthMoved`, eq. 13 per pixel: its Gaussians follow
+        the change, :meth:`~mcgs_warp.mapping.mapper.Mapper.follow`). Exact sensor depth is
+        its own target: nothing follows."""
+        if self.exact:
+            return []
+        mapped = [k for k in keyframes if k in self.buf.targets]
+        if not mapped:
+            return []
+        disp, poses = self.buf.disp.numpy(), self.buf.get_poses()  # read once, not per keyframe
+        weight = self.measured_weight(mapped)
+        out = []
+        for k in mapped:
+            new = np.where(disp[k] > 0, 1.0 / np.maximum(disp[k], 1e-12), 0.0)
+            out.append(DepthMoved(k, poses[k].copy(), new, self.compute(sequence[self.buf.frame_index[k]], k, lost, kept, disp[k], weight[k])))
+        return out
+
+    def solved_at(self, k: int, c: int, uv: np.ndarray) -> np.ndarray:
+        """Solved depth [M] (m, 0 where nothing measured it) of keyframe ``k``, camera ``c``,
+        at full-resolution pixels ``uv`` [M,2]: the nearest grid sample (:meth:`constrained`)."""
+        s, spec = self.buf.stride, self.rig.cameras[c]
+        g = np.rint((uv - s // 2) / s).astype(int)
+        h, w = spec.height // s, spec.width // s
+        inside = (g[:, 0] >= 0) & (g[:, 0] < w) & (g[:, 1] >= 0) & (g[:, 1] < h)
+        gx, gy = np.clip(g[:, 0], 0, w - 1), np.clip(g[:, 1], 0, h - 1)
+        disp = self.buf.disp[k].numpy()[c]
+        ok = self.constrained(k, self.measured_weight([k])[k])[c]
+        d = disp[gy, gx]
+        return np.where(inside & ok[gy, gx] & (d > 0), 1.0 / np.maximum(d, 1e-12), 0.0)
+
+    def solved_at_frame(self, f: int, c: int, uv: np.ndarray) -> np.ndarray:
+        """:meth:`solved_at` for frame ``f`` where it is a keyframe, else 0 [M] (the keypoint
+        odometry's points on a monocular rig)."""
+        k = {int(i): k for k, i in enumerate(self.buf.frame_index)}.get(f)
+        return self.solved_at(k, c, uv) if k is not None else np.zeros(len(uv))

@@ -4,13 +4,16 @@ which it runs, as DROID-SLAM's droid.py wires its parts.
 Three stages with their own inputs and outputs share the keyframe buffer: the tracker
 (:mod:`.tracker`: per frame the keypoint odometry and the keyframe test; per keyframe its
 start, depth prior, MCBA (+ JDSA) over the sliding window and the health of the solve), which
-alone writes poses and depths and emits what the map must follow; the mapper
-(:class:`~mcgs_warp.mapping.mapper.Mapper`), which follows those updates, registers each new
-keyframe with the tracker's depth targets and runs mapping iterations over the window; after
-the last frame the offline stage (:meth:`SLAM.refine`: the global-BA backend's MCBA with long
-and loop edges (:mod:`.backend`), photo-consistent depth targets (:mod:`.offline`), joint
-refinement of map, poses and exposures). Bootstrap: without exact depth, keyframe 0 is mapped only after keyframe 1's
-MCBA, so that no Gaussian is seeded from the constant start depth. The online state is
+alone writes poses and depths and returns per keyframe one
+:class:`~mcgs_warp.mapping.follow.KeyframeUpdate` (what moved, then the keyframes to register
+with their depth targets: the bootstrap rule, without exact depth keyframe 0 is mapped only
+after keyframe 1's MCBA, and the lost filter are the tracker's); the mapper
+(:class:`~mcgs_warp.mapping.mapper.Mapper`), which applies it
+(:meth:`~mcgs_warp.mapping.mapper.Mapper.apply`) and runs mapping iterations over the
+tracker's window, as ORB-SLAM3's tracking only inserts keyframes into its local mapper's
+queue; after the last frame the offline stage (:meth:`SLAM.refine`: the global-BA backend's
+MCBA with long and loop edges (:mod:`.backend`), photo-consistent depth targets
+(:mod:`.offline`), joint refinement of map, poses and exposures). The online state is
 checkpointed after every keyframe (:mod:`.checkpoint`). Deterministic for a seed.
 """
 
@@ -21,7 +24,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..ba.edges import sliding_window
 from ..buffer import KeyframeBuffer
 from ..data.sequence import Sequence
 from ..data.trajectory import Trajectory
@@ -79,8 +81,8 @@ class SLAM:
         self.progress = progress or Progress(False)
         self.buf = KeyframeBuffer(sequence.rig, stride=config.tracking.stride, device=device)  # grows with the keyframes
         self.tracker = self.make_tracker()
-        self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed)
-        self.mapper.sky_depth_veto = self.tracker.exact_depth  # a region exact sensor depth measures is not sky
+        # a region exact sensor depth measures is not sky
+        self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed, sky_depth_veto=self.tracker.exact_depth)
         self.backend = Backend(self.tracker, config.refinement)
         self.seconds = {"tracking": 0.0, "mapping": 0.0, "refinement": 0.0}
         self.poses_before_global_ba = None  # keyframe T_w_b before the offline MCBA (benchmarks/scaling.py: drift)
@@ -99,28 +101,17 @@ class SLAM:
             start, kf_frames = load_checkpoint(self, checkpoint)
             last_images = self.seq[kf_frames[-1]].images if kf_frames else None
             self.progress("resumed", start, n, f"keyframes {len(kf_frames)}", force=True)
-        mcfg = self.cfg.mapping
         for idx in range(start, n):
-            frame = self.seq[idx]
-            t0 = time.perf_counter()
+            frame, t0 = self.seq[idx], time.perf_counter()
             if not tracker.track(idx, frame, last_images):
                 self.seconds["tracking"] += time.perf_counter() - t0
                 self.progress("tracking", idx + 1, n, f"keyframes {len(kf_frames)}")
                 continue
-            k = tracker.add_keyframe(frame)
+            update = tracker.add_keyframe(frame)  # its solve's moves, the keyframes to register (bootstrap, lost)
             kf_frames.append(idx)
-            last_images = frame.images
-            t1 = time.perf_counter()
-            self.mapper.follow(tracker.take_update(), self.seq.rig)
-            # Bootstrap: without exact depth, keyframe 0 waits for the MCBA of keyframe 1,
-            # so that no Gaussian is seeded from the constant start depth.
-            for m in ([0, k] if k == 1 and not tracker.exact_depth else [] if k == 0 and not tracker.exact_depth else [k]):
-                if m in tracker.lost:
-                    continue
-                self.mapper.add_keyframe(m, tracker.mapping_depths(self.seq[self.buf.frame_index[m]], m), placed=self.buf.depth(m))
-            window = sliding_window(len(self.buf), self.cfg.tracking.window)
-            if self.buf.targets:
-                self.mapper.optimize(mcfg.iterations_per_keyframe, keyframes=[w for w in window if w in self.buf.targets])
+            last_images, t1 = frame.images, time.perf_counter()
+            self.mapper.apply(update, self.seq.rig)
+            self.mapper.optimize_window(update.window, self.cfg.mapping.iterations_per_keyframe)
             release_freed_memory()  # this keyframe's temporaries: the heap would keep them (.memory)
             t2 = time.perf_counter()
             self.seconds["tracking"] += t1 - t0

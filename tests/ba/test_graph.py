@@ -371,19 +371,19 @@ def test_false_loop_candidates_are_rejected(loop_problem):
 
 
 def test_a_keyframe_without_overlapping_views_is_still_linked(synthetic_seq):
-    """The tracker keeps each camera of a new keyframe linked to the previous keyframe when
-    the overlap rule found it no partner (it would otherwise not be tracked at all), and adds
-    nothing for cameras that have one; the graph's bookkeeping asks without adding."""
+    """The tracker's graph keeps each camera of a new keyframe linked to the previous keyframe
+    when the overlap rule found it no partner (it would otherwise not be tracked at all), and
+    adds nothing for cameras that have one; the graph's bookkeeping asks without adding."""
     from mcgs_warp.system.config import RunConfig
     from mcgs_warp.system.slam import SLAM
 
     slam = SLAM(synthetic_seq, RunConfig()).tracker
     C = len(synthetic_seq.rig)
     slam.graph.add([(1, 0, 0, 0), (0, 0, 1, 0)])
-    slam._link_newest(1)
+    assert slam.graph.link_to_previous(1, C) == list(range(1, C))
     keys = {tuple(int(v) for v in e[:4]) for e in slam.graph.edges}
     assert keys == {(1, c, 0, c) for c in range(C)} | {(0, c, 1, c) for c in range(C)}
-    slam._link_newest(1)
+    assert slam.graph.link_to_previous(1, C) == []
     assert len(slam.graph.edges) == 2 * C
     # asking which edges lack correspondences does not add unknown edges
     assert len(slam.graph.missing([(5, 0, 6, 0)])) == 1 and (5, 0, 6, 0) not in {tuple(int(v) for v in e[:4]) for e in slam.graph.stored}

@@ -184,14 +184,14 @@ def test_window_keeps_a_two_view_step_against_few_wrong_links():
 
 
 def test_two_view_spans_tie_keyframes_in_mcba_on_every_rig():
-    """The tracker's odometry factors (system/tracker.py): a span of two-view steps is a
+    """The tracker's odometry factors (system/window_factors.py): a span of two-view steps is a
     factor on a rig with no depth of its own (its length comes from the lever arms), a PnP span
     there is not (its points stood on the system's own depth); with rig stereo both are."""
     from types import SimpleNamespace
 
     from mcgs_warp.ba.edges import camera_overlap
     from mcgs_warp.frontend.keypoint_odometry import KeypointOdometry
-    from mcgs_warp.system.tracker import Tracker
+    from mcgs_warp.system.window_factors import WindowFactors
 
     rng = np.random.default_rng(5)
     rig = load_rig(packaged_config("rig_surround.yaml"))
@@ -206,9 +206,8 @@ def test_two_view_spans_tie_keyframes_in_mcba_on_every_rig():
     assert set(odo.two_view) == {5, 10}
 
     def factors(stereo_pairs, exact_depth=False):
-        fake = SimpleNamespace(cfg=SimpleNamespace(tracking=SimpleNamespace(odometry_weight=1.0)), odometry=odo, exact_depth=exact_depth,
-                               stereo=SimpleNamespace(pairs=stereo_pairs), buf=SimpleNamespace(frame_index=np.array([0, 5, 10])))
-        out = Tracker._odometry_factors(fake, [0, 1, 2])
+        window = WindowFactors(SimpleNamespace(frame_index=np.array([0, 5, 10])), rig, SimpleNamespace(odometry_weight=1.0), odo, exact_depth, exact_depth or bool(stereo_pairs), mcba=None)
+        out = window.odometry_steps([0, 1, 2])
         return out[0] if out else None
 
     measured = odo.two_view[5] @ odo.two_view[10]
