@@ -466,10 +466,10 @@ class Mapper:
 
     def optimize_window(self, window, iterations: int) -> list[StepResult]:
         """:meth:`optimize` over the registered keyframes of ``window`` (the tracker's sliding
-        window, :attr:`KeyframeUpdate.window`); nothing while no keyframe is registered."""
-        if not self.buf.targets:
-            return []
-        return self.optimize(iterations, keyframes=[k for k in window if k in self.buf.targets])
+        window, :attr:`KeyframeUpdate.window`); nothing while none of them is registered (before
+        the first registration, or while tracking is lost over the whole window)."""
+        keyframes = [k for k in window if k in self.buf.targets]
+        return self.optimize(iterations, keyframes=keyframes) if keyframes else []
 
     def evaluate(self, views) -> float:
         """Mean PSNR (dB) of renders against images: ``views`` is [(T_w_b, [image per camera])]."""

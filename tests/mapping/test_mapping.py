@@ -337,3 +337,15 @@ def test_new_gaussians_are_sized_by_their_pixel_footprint():
             np.testing.assert_allclose(scales, np.repeat(want[:, None], 3, 1), rtol=1e-5)
         # at the image centre, neighbouring samples on the plane are 4 px x depth / f apart
         assert np.isclose(scales.min(), 0.5 * 4 * depth / cam.intrinsics[0], rtol=0.01)
+
+
+def test_a_window_of_unregistered_keyframes_maps_nothing(fitted, mapping_seq):
+    """Tracking lost over the whole window (no keyframe of it registered) while earlier ones
+    are: the window's mapping step does nothing, and over registered ones it steps."""
+    m = make_mapper(mapping_seq, params=fitted)
+    before = m.map.to_numpy()
+    assert m.optimize_window([7, 8, 9], 2) == []
+    after = m.map.to_numpy()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+    steps = m.optimize_window([2, 3, 7], 2)
+    assert len(steps) == 2 and not np.array_equal(m.map.to_numpy()["means"], before["means"])
