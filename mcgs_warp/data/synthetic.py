@@ -142,12 +142,16 @@ class SceneRenderer:
         wp.launch(camera_rays_kernel, dim=(C, self.H, self.W), inputs=[self.cams, ss], outputs=[self.centre, self.sub], device=self.device)
 
     def render(self, T_w_b: np.ndarray):
-        """Colour [C,H,W,3] (RGB in [0,1]) and depth [C,H,W] (m) at body pose ``T_w_b``."""
+        """Colour [C,H,W,3] (RGB in [0,1]) and depth [C,H,W] (m) at body pose ``T_w_b`` [4,4],
+        or each camera at its own body pose (``T_w_b`` [C,4,4]: cameras that fire at
+        different times)."""
         from ..kernels.launch import run_row_bands
         from ..kernels.raycast import raycast_kernel
 
         C = len(self.rig)
-        poses = wp.array(self.rig.camera_poses(T_w_b).astype(np.float32), dtype=wp.mat44, device=self.device)
+        T_w_c = self.rig.camera_poses(T_w_b)
+        T_w_c = T_w_c[np.arange(C), np.arange(C)] if np.ndim(T_w_b) == 3 else T_w_c  # [C,C,4,4] -> camera c at pose c
+        poses = wp.array(T_w_c.astype(np.float32), dtype=wp.mat44, device=self.device)
         color = wp.zeros((C, self.H, self.W), dtype=wp.vec3, device=self.device)
         depth = wp.zeros((C, self.H, self.W), dtype=float, device=self.device)
 
@@ -164,7 +168,17 @@ class SceneRenderer:
         return color.numpy(), depth.numpy()
 
 
-def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth", scene: str = "room") -> FolderSequence:
+def pose_at(traj: Trajectory, t: float) -> np.ndarray:
+    """The body pose [4,4] of ``traj`` at time ``t`` (s), interpolated between its poses and
+    extrapolated along the first or last motion beyond its ends."""
+    from .trajectory import interpolate_pose
+
+    ts = traj.timestamps
+    j = int(np.clip(np.searchsorted(ts, t), 1, len(ts) - 1))
+    return interpolate_pose(traj.poses[j - 1], traj.poses[j], float((t - ts[j - 1]) / (ts[j] - ts[j - 1])))
+
+
+def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth", scene: str = "room", camera_delays=None) -> FolderSequence:
     """Write the synthetic sequence to ``out`` in our folder format and open it.
 
     ``scene``: ``room`` (the textured room, this module, the same for every seed but its
@@ -186,7 +200,10 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
     come out black with depth 0). ``realism``: ``none`` (the perfect render) or ``camera``
     (motion blur, vignetting, per-frame gains, noise, JPEG: :mod:`mcgs_warp.data.realism`,
     settings ``realism_config``, a :class:`~mcgs_warp.data.realism.CameraRealism`; the gains
-    go to ``gt/gains.txt``)."""
+    go to ``gt/gains.txt``). ``camera_delays`` [C] (s): each camera's image is taken that long
+    after its frame's timestamp, along the trajectory (extrapolated past its ends), while the
+    folder stamps the frames as synchronized: cameras whose exposures are centred at different
+    times (unequal exposure times, or a surround rig firing camera by camera)."""
     from .realism import REALISM, CameraRealism, camera_image, gains, image_motion, vignetting
 
     if mono_prior not in PRIOR_MODELS:
@@ -242,8 +259,11 @@ def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=
         vignettes = [vignetting(c, cfg.vignette) for c in rig.cameras]
         rays, structs = renderer.centre.numpy(), rig.warp_cameras()
         T_w_c = rig.camera_poses(traj.poses)  # [K,C,4,4]
+    if camera_delays is not None and len(camera_delays) != len(rig):
+        raise ValueError(f"generate: camera_delays has {len(camera_delays)} values for a rig of {len(rig)} cameras")
     for k in range(n_frames):
-        color, exact = renderer.render(traj.poses[k])
+        at = traj.poses[k] if camera_delays is None or not np.any(camera_delays) else np.stack([pose_at(traj, traj.timestamps[k] + d) for d in camera_delays])
+        color, exact = renderer.render(at)
         exact = [exact[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]
         seen = [mono_like_depth(d, rng, errors) for d in exact] if depth == "mono" else exact if depth == "exact" else None
         images = [color[i, : c.height, : c.width] for i, c in enumerate(rig.cameras)]

@@ -31,6 +31,30 @@ class KeypointConfig:
     min_inliers: int = 20  # a PnP pose with fewer inliers is no pose
     min_inlier_ratio: float = 0.25  # ... and so is one explaining less than this share of the matches
     keyframes: int = 3  # match a new keyframe against this many recent keyframes
+    stereo_overlap: float = 0.5  # two cameras that each see at least this share of the other's view are a stereo pair: the second measures depth only, not motion (:attr:`KeypointTracker.observers`; above 1: every camera measures motion)
+
+
+def motion_observers(n_cameras: int, overlap, stereo_pairs, min_overlap: float) -> list:
+    """The cameras whose keypoints measure the rig's motion: all but the second camera of each
+    stereo pair. The rig's cameras pair up in order (a camera with the first later one of
+    ``stereo_pairs`` that each see at least ``min_overlap`` of the other's view, [C,C]
+    ``overlap``; each camera in one pair at most); a pair's second camera gives its partner's
+    keypoints their depth and is not itself matched over time, as a stereo keypoint of
+    ORB-SLAM2 or of a classical stereo VO is (the right image's coordinate is a depth
+    measurement). The two cameras of a pair whose exposures are centred a few milliseconds
+    apart (unequal exposure times) disagree on the motion: the second camera's own matches
+    over time made a synthetic stereo path with a 3 ms late right camera 0.7 % long at
+    10 m/s (tests/ba/test_keypoint_odometry.py)."""
+    pairs = {(min(a, b), max(a, b)) for a, b in stereo_pairs}
+    second: set = set()
+    for a in range(n_cameras):
+        if a in second or overlap is None:
+            continue
+        for b in range(a + 1, n_cameras):
+            if b not in second and (a, b) in pairs and min(overlap[a, b], overlap[b, a]) >= min_overlap:
+                second.add(b)
+                break
+    return [c for c in range(n_cameras) if c not in second]
 
 
 class KeypointTracker:
@@ -42,6 +66,7 @@ class KeypointTracker:
         self.rig = rig
         C = len(rig)
         self.partners = [[c] + [d for d in range(C) if d != c and overlap is not None and overlap[c, d] > 0] for c in range(C)]
+        self.observers = motion_observers(C, overlap, stereo_pairs, cfg.stereo_overlap)
         self.detector = KeypointDetector(rig, stereo_pairs, features=cfg.features, ratio=cfg.ratio)
         self.pnp = RigPnP(rig, inlier_rad=cfg.inlier_rad, seed=seed)
         self.views: dict[int, list[ViewKeypoints]] = {}  # keyframe -> its keypoints per camera
@@ -73,12 +98,15 @@ class KeypointTracker:
             out.append(X)
         return out
 
-    def observations(self, views: list[ViewKeypoints], keyframes, poses: np.ndarray, depth_at=None, solved=None):
+    def observations(self, views: list[ViewKeypoints], keyframes, poses: np.ndarray, depth_at=None, solved=None, cameras=None):
         """2D-3D matches of ``views`` (a new frame) against ``keyframes`` (their rig poses
-        ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame, and per
-        set the matched keypoints ``(keyframe, camera, index there, index here)`` [M,4]."""
+        ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame (of
+        ``cameras``, default all), and per set the matched keypoints ``(keyframe, camera, index
+        there, index here)`` [M,4]."""
         obs, pairs, pts_of = [], [], {}  # pts_of: keyframe -> its world points per camera (once per call)
         for c, v in enumerate(views):
+            if cameras is not None and c not in cameras:
+                continue
             b, X, who = [], [], []
             for k in keyframes:
                 if k not in self.views:
@@ -104,13 +132,17 @@ class KeypointTracker:
     def localize(self, views, keyframes, poses, depth_at=None, guess=None, solved=None) -> PnPResult | None:
         """The rig pose of a frame with keypoints ``views`` from matches against
         ``keyframes``; None when no pose has enough support (``min_inliers`` and
-        ``min_inlier_ratio``). ``guess`` (constant velocity) competes as a hypothesis;
+        ``min_inlier_ratio``). The keypoints of the :attr:`observers` measure the pose; where
+        they find none, those of every camera. ``guess`` (constant velocity) competes as a hypothesis;
         ``depth_at`` and ``solved`` give keypoints their 3D points (:meth:`points_w`). The
         result's ``matches`` [M,5] are its inlier matches ``(keyframe, camera there, index
         there, camera here, index here)`` (:class:`~mcgs_warp.ba.keypoint_tracks.KeypointTracks` links them)."""
-        obs, pairs = self.observations(views, keyframes, poses, depth_at, solved)
-        res = self.pnp.solve(obs, guess=guess, min_inliers=self.cfg.min_inliers)
-        if res is None or res.inlier_ratio < self.cfg.min_inlier_ratio:
+        for cameras in [self.observers, None] if len(self.observers) < len(views) else [None]:
+            obs, pairs = self.observations(views, keyframes, poses, depth_at, solved, cameras)
+            res = self.pnp.solve(obs, guess=guess, min_inliers=self.cfg.min_inliers)
+            if res is not None and res.inlier_ratio >= self.cfg.min_inlier_ratio:
+                break
+        else:
             return None
         rows = [np.concatenate([p[m][:, :3], np.full((int(m.sum()), 1), o.camera), p[m][:, 3:4]], 1) for o, p, m in zip(obs, pairs, res.inliers)]
         res.matches = np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 5), np.int64)
