@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ba.keypoint_factors import KeypointFactors
-from ..ba.lm import Damping, damped_step
+from ..ba.lm import damped_step, minimize
 from ..ba.pose_factors import RelativePoseFactors
 from ..ba.keypoint_tracks import KeypointTracks
 from ..data.trajectory import Trajectory
@@ -128,30 +128,30 @@ class KeypointOdometry:
         sigma2 = self._tracks_variance(f, Pw)
         steps = self._two_view_factors(window, sigma2)
         free = np.arange(6, 6 * n)
-        damping, cur = Damping(1e-4), f.cost(Pw) + steps.cost(Pw)
-        for _ in range(cfg.iterations):
-            S, rhs = f.reduced_terms(Pw, damping.lam)
+        Pc = None
+
+        def linearize(lam):
+            S, rhs = f.reduced_terms(Pw, lam)
             if len(steps):
-                S2, rhs2 = steps.reduced_terms(Pw, damping.lam)
+                S2, rhs2 = steps.reduced_terms(Pw, lam)
                 S, rhs = S + S2, rhs + rhs2
-            while True:
-                dx = damped_step(S, rhs, free, damping.lam)
-                if not np.all(np.isfinite(dx)):
-                    damping.failed()
-                else:
-                    f.candidate(dx)
-                    Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
-                    c = f.cost(Pc, f.disp_c) + steps.cost(Pc)
-                    if c <= cur:
-                        Pw, cur = Pc, c
-                        damping.accepted()
-                        f.accept()
-                        break
-                    damping.rejected()
-                if damping.exhausted:
-                    break
-            if damping.exhausted:
-                break
+            return S, rhs
+
+        def propose(lin, lam):
+            nonlocal Pc
+            dx = damped_step(*lin, free, lam)
+            if not np.all(np.isfinite(dx)):
+                return None
+            f.candidate(dx)
+            Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
+            return f.cost(Pc, f.disp_c) + steps.cost(Pc)
+
+        def accept(cost, new_cost):
+            nonlocal Pw
+            Pw = Pc
+            f.accept()
+
+        minimize(f.cost(Pw) + steps.cost(Pw), linearize, propose, accept, cfg.iterations)
         for s, k in enumerate(window):
             poses_of[k] = Pw[s]
         prob.disp[:] = f.disp
