@@ -41,7 +41,7 @@ import warp as wp
 from ..buffer import KeyframeBuffer
 from ..kernels.camera import FAR
 from ..kernels.launch import band_workers, run_row_bands
-from .lm import Damping, damped_step
+from .lm import Damping, damped_step, minimize
 from .variance import ClassNoise, class_scales, dense_noise, disagreement_factor
 
 
@@ -188,65 +188,60 @@ class MCBA:
         noises = [f.noise(window_poses(win.poses.numpy())) for f in extra]
         scales = class_scales(self.dense_variance(), noises) if cfg.variance_components else [1.0] * len(extra)
         stats.scales = scales
-        damping = Damping(cfg.lm_lambda)
         dense = win.cost(win.disp, win.poses)
         current = dense + sum(s * f.cost(window_poses(win.poses.numpy())) for s, f in zip(scales, extra))
         stats.cost.append(current)
         stats.dense_cost.append(dense)
         free = [s for s, k in enumerate(keyframes) if k not in fixed]
         free_idx = np.concatenate([np.arange(6 * s, 6 * s + 6) for s in free]) if free else np.zeros(0, int)
+        first, new_dense = True, None
 
-        for it in range(cfg.iterations):
+        def linearize(lam):
+            nonlocal first
             t0 = time.perf_counter()
             win.linearize()
             stats.keyframes = keyframes
             t1 = time.perf_counter()
             stats.seconds_kernel += t1 - t0
-            S, rhs = win.reduce(damping.lam)  # Schur complement with the damped depth block
+            S, rhs = win.reduce(lam)  # Schur complement with the damped depth block
             S_dense, rhs_dense = S, rhs
             S_abs, rhs_abs = np.zeros_like(S), np.zeros_like(rhs)  # the classes in absolute units
             for sc, f, nz in zip(scales, extra, noises):
-                S_f, rhs_f = f.reduced_terms(window_poses(win.poses.numpy()), damping.lam)
+                S_f, rhs_f = f.reduced_terms(window_poses(win.poses.numpy()), lam)
                 if isinstance(nz, float):
                     S_abs, rhs_abs = S_abs + nz * S_f, rhs_abs + nz * rhs_f
                 S, rhs = S + sc * S_f, rhs + sc * rhs_f
-            if it == 0 and cfg.variance_components and len(free_idx) and S_abs.any():
+            if first and cfg.variance_components and len(free_idx) and S_abs.any():
                 fac = disagreement_factor(S_dense[np.ix_(free_idx, free_idx)], rhs_dense[free_idx], S_abs[np.ix_(free_idx, free_idx)], rhs_abs[free_idx])
                 if fac is not None:
                     self.disagreement.append(fac)
                     stats.disagreement = fac
-            t2 = time.perf_counter()
-            stats.seconds_reduce += t2 - t1
+            first = False
+            stats.seconds_reduce += time.perf_counter() - t1
+            return S, rhs
 
-            while True:
-                dxi = damped_step(S, rhs, free_idx, damping.lam)
-                if not (np.all(np.isfinite(dxi)) and win.candidate(dxi, damping.lam)):
-                    damping.failed()
-                    stats.rejected += 1
-                    if damping.exhausted:
-                        break
-                    continue
-                new_dense = new_cost = win.cost(win.disp_c, win.poses_c)
-                for sc, f in zip(scales, extra):
-                    f.candidate(dxi)
-                    new_cost += sc * f.cost(window_poses(win.poses_c.numpy()), getattr(f, "disp_c", None))
-                if new_cost <= current:
-                    win.accept()
-                    for f in extra:
-                        f.accept()
-                    current = new_cost
-                    stats.cost.append(current)
-                    stats.dense_cost.append(new_dense)
-                    stats.accepted += 1
-                    damping.accepted()
-                    break
-                stats.rejected += 1
-                damping.rejected()
-                if damping.exhausted:
-                    break
-            stats.seconds_solve += time.perf_counter() - t2
-            if damping.exhausted:
-                break
+        def propose(lin, lam):
+            nonlocal new_dense
+            dxi = damped_step(*lin, free_idx, lam)
+            if not (np.all(np.isfinite(dxi)) and win.candidate(dxi, lam)):
+                return None
+            new_dense = new_cost = win.cost(win.disp_c, win.poses_c)
+            for sc, f in zip(scales, extra):
+                f.candidate(dxi)
+                new_cost += sc * f.cost(window_poses(win.poses_c.numpy()), getattr(f, "disp_c", None))
+            return new_cost
+
+        def accept(cost, new_cost):
+            win.accept()
+            for f in extra:
+                f.accept()
+            stats.cost.append(new_cost)
+            stats.dense_cost.append(new_dense)
+
+        t = time.perf_counter()
+        res = minimize(current, linearize, propose, accept, cfg.iterations, Damping(cfg.lm_lambda))
+        stats.accepted, stats.rejected = res.accepted, res.rejected
+        stats.seconds_solve = time.perf_counter() - t - stats.seconds_kernel - stats.seconds_reduce
         if stats.accepted:
             win.store()
             if kp:

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ba.keypoint_factors import KeypointFactors
-from ..ba.lm import Damping, damped_step
+from ..ba.lm import damped_step, minimize
 from ..ba.pose_factors import RelativePoseFactors
 from ..ba.keypoint_tracks import KeypointTracks
 from ..data.trajectory import Trajectory
@@ -108,13 +108,14 @@ class KeypointOdometry:
         if res is not None:
             self.tracks.link(index, res.matches)
         if prev:
-            self._adjust(depth_at)
+            self.adjust(depth_at)
         self._forget()
         return OdometryStep(P[index], self.tracked[index], 0 if res is None else res.n_inliers)
 
-    def _adjust(self, depth_at) -> None:
+    def adjust(self, depth_at) -> None:
         """LM over the last ``window`` frames' poses and tracks (the oldest held), then the
-        newest step's covariance from the window's information."""
+        newest step's covariance from the window's information (:meth:`track` runs it after
+        each frame; ``depth_at`` as there, None: the keypoints' own depth alone)."""
         cfg = self.cfg
         window = self.frames[-cfg.window :]
         poses_of = self.poses
@@ -126,38 +127,38 @@ class KeypointOdometry:
         f = KeypointFactors(prob, self.rig, cfg.stride, cfg.huber_px / cfg.stride, 1.0 / FAR)
         Pw = np.stack([poses_of[k] for k in window])
         sigma2 = self._tracks_variance(f, Pw)
-        steps = self._two_view_factors(window, sigma2)
+        steps = self.two_view_factors(window, sigma2)
         free = np.arange(6, 6 * n)
-        damping, cur = Damping(1e-4), f.cost(Pw) + steps.cost(Pw)
-        for _ in range(cfg.iterations):
-            S, rhs = f.reduced_terms(Pw, damping.lam)
+        Pc = None
+
+        def linearize(lam):
+            S, rhs = f.reduced_terms(Pw, lam)
             if len(steps):
-                S2, rhs2 = steps.reduced_terms(Pw, damping.lam)
+                S2, rhs2 = steps.reduced_terms(Pw, lam)
                 S, rhs = S + S2, rhs + rhs2
-            while True:
-                dx = damped_step(S, rhs, free, damping.lam)
-                if not np.all(np.isfinite(dx)):
-                    damping.failed()
-                else:
-                    f.candidate(dx)
-                    Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
-                    c = f.cost(Pc, f.disp_c) + steps.cost(Pc)
-                    if c <= cur:
-                        Pw, cur = Pc, c
-                        damping.accepted()
-                        f.accept()
-                        break
-                    damping.rejected()
-                if damping.exhausted:
-                    break
-            if damping.exhausted:
-                break
+            return S, rhs
+
+        def propose(lin, lam):
+            nonlocal Pc
+            dx = damped_step(*lin, free, lam)
+            if not np.all(np.isfinite(dx)):
+                return None
+            f.candidate(dx)
+            Pc = np.stack([Pw[s] @ se3_exp(dx[6 * s : 6 * s + 6]) for s in range(n)])
+            return f.cost(Pc, f.disp_c) + steps.cost(Pc)
+
+        def accept(cost, new_cost):
+            nonlocal Pw
+            Pw = Pc
+            f.accept()
+
+        minimize(f.cost(Pw) + steps.cost(Pw), linearize, propose, accept, cfg.iterations)
         for s, k in enumerate(window):
             poses_of[k] = Pw[s]
         prob.disp[:] = f.disp
         self.tracks.update(prob, roots, window, poses_of, self.T_b_c)
         if self.tracked[new] and new not in self.two_view:  # a two-view step keeps its own covariance: few window tracks observe it
-            self.step_cov[new] = self._step_covariance(f, Pw, steps)
+            self.step_cov[new] = self.step_covariance(f, Pw, steps)
 
     def _tracks_variance(self, f: KeypointFactors, Pw: np.ndarray) -> float:
         """The variance the window's keypoint residuals measure (grid px^2,
@@ -169,7 +170,7 @@ class KeypointOdometry:
         noise = f.noise(Pw)
         return 1.0 if noise is None or noise.redundancy <= 6 * (n - 1) else noise.sigma2 * noise.redundancy / (noise.redundancy - 6 * (n - 1))
 
-    def _two_view_factors(self, window, sigma2: float) -> RelativePoseFactors:
+    def two_view_factors(self, window, sigma2: float) -> RelativePoseFactors:
         """The window's two-view steps (a frame and the one before it; the window is the last
         frames in order) as relative-pose factors: no track links a two-view frame to the frames
         before it, so without its measured step the window holds it by the few tracks later
@@ -182,7 +183,7 @@ class KeypointOdometry:
         info = [sigma2 * np.linalg.pinv(self.step_cov[window[b]]) for _a, b in pairs]
         return RelativePoseFactors(pairs, motions, info, huber=3.0 * np.sqrt(sigma2))
 
-    def _step_covariance(self, f: KeypointFactors, Pw: np.ndarray, steps: RelativePoseFactors | None = None) -> np.ndarray:
+    def step_covariance(self, f: KeypointFactors, Pw: np.ndarray, steps: RelativePoseFactors | None = None) -> np.ndarray:
         """[6,6] covariance of the newest step ``T_prev^-1 T_new`` (right perturbation), from
         the inverse of the window's reduced information (oldest pose held; the keypoint
         observations' Huber weights, and the two-view steps that hold the frames before it)

@@ -14,10 +14,12 @@ resolution (as OpenGV's central/non-central absolute-pose methods do).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..ba.lm import Damping, minimize
 from ..geometry import invert, se3_exp
 from ..rig import Rig
 
@@ -151,36 +153,42 @@ class RigPnP:
         return PnPResult(T, inl, n, total, from_guess)
 
     def refine(self, T_w_b: np.ndarray, obs: list[RigObservations], inliers: list, iterations: int = 10) -> np.ndarray:
-        """Levenberg-Marquardt (damped Gauss-Newton, a step kept only if the cost falls) with
+        """Levenberg-Marquardt (:func:`~mcgs_warp.ba.lm.minimize`; a step kept only if the cost falls) with
         Huber weights on the bearing residuals of ``inliers`` (unit-vector differences, about the
         angle at these sizes; threshold ``inlier_rad``); increments right-multiplied in the body
         frame (DESIGN.md)."""
         sets = [(o.camera, o.bearings[m], o.points_w[m]) for o, m in zip(obs, inliers) if m.any()]
         if sum(len(b) for _, b, _ in sets) < 6:
             return T_w_b
-        T = T_w_b.copy()
-        lam = 1e-4
-        cost = self._cost(T, sets)
-        for _ in range(iterations):
+        T, cand, dx = T_w_b.copy(), None, None
+
+        def linearize(lam):
             H, g = np.zeros((6, 6)), np.zeros(6)
             for c, b, X_w in sets:
                 r, J, w = self._linearize(T, c, b, X_w)
                 H += np.einsum("n,nki,nkj->ij", w, J, J)
                 g += np.einsum("n,nki,nk->i", w, J, r)
+            return H, g
+
+        def propose(lin, lam):
+            nonlocal cand, dx
+            H, g = lin
             try:
                 dx = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), g)
             except np.linalg.LinAlgError:
-                break
-            T_new = T @ se3_exp(dx)
-            new = self._cost(T_new, sets)
-            if new < cost:
-                T, cost, lam = T_new, new, lam * 0.3
-                if np.linalg.norm(dx) < 1e-9:
-                    break
-            else:
-                lam *= 10.0
-                if lam > 1e4:
-                    break
+                return None
+            cand = T @ se3_exp(dx)
+            return self._cost(cand, sets)
+
+        def accept(cost, new):
+            nonlocal T
+            T = cand
+            return np.linalg.norm(dx) < 1e-9
+
+        # its own schedule: x0.3 on a kept step, x10 on a refused one, and a system it cannot
+        # solve or a damping past 1e4 ends it; each try is one of the ``iterations``
+        damping = Damping(1e-4, up=10.0, down=(0.3, 1.0), fail=math.inf, lo=0.0, hi=1e4)
+        minimize(self._cost(T, sets), linearize, propose, accept, iterations, damping, strict=True, retry=False)
         return T
 
     def _residual(self, T_w_b, c, b, X_w):

@@ -215,7 +215,7 @@ def _two_view_ba(T0, M, fa, fb, T_b_c, inlier_rad, iterations: int = 30):
     coupled with every depth, which a generic trust-region solver crawls along; the reduced
     6x6 system moves it in one step. Returns (T, inverse depths, the motion's covariance
     [6,6] from the reduced information, the residual variance) or None."""
-    from ..ba.lm import Damping, damped_step
+    from ..ba.lm import damped_step, minimize
 
     rho = _depths(T0, M, fa, fb, T_b_c)
     good = np.isfinite(rho) & (rho > 0)
@@ -245,29 +245,25 @@ def _two_view_ba(T0, M, fa, fb, T_b_c, inlier_rad, iterations: int = 30):
         gd = np.einsum("n,ni,ni->n", w, Jd, r)
         return Hpp, Hpd, Hdd, gp, gd
 
-    T, damping, cur, done = T0, Damping(1e-4), robust_cost(residual(T0, rho)), False
-    for _ in range(iterations):
-        Hpp, Hpd, Hdd, gp, gd = linearize(T, rho)
-        while True:
-            Dd = Hdd * (1 + damping.lam) + 1e-12
-            dp = damped_step((Hpp - (Hpd / Dd[:, None]).T @ Hpd), -(gp - Hpd.T @ (gd / Dd)), np.arange(6), damping.lam)
-            if not np.all(np.isfinite(dp)):
-                damping.failed()
-                dp = None
-            if dp is not None:
-                dd = -(gd + Hpd @ dp) / Dd
-                Tc, rc = T @ se3_exp(dp), np.maximum(rho + dd, 1e-4)
-                c = robust_cost(residual(Tc, rc))
-                if c <= cur:
-                    done = cur - c < 1e-10 * max(cur, 1e-30)
-                    T, rho, cur = Tc, rc, c
-                    damping.accepted()
-                    break
-                damping.rejected()
-            if damping.exhausted:
-                break
-        if damping.exhausted or done:
-            break
+    T, cand = T0, None
+
+    def propose(lin, lam):
+        nonlocal cand
+        Hpp, Hpd, Hdd, gp, gd = lin
+        Dd = Hdd * (1 + lam) + 1e-12
+        dp = damped_step((Hpp - (Hpd / Dd[:, None]).T @ Hpd), -(gp - Hpd.T @ (gd / Dd)), np.arange(6), lam)
+        if not np.all(np.isfinite(dp)):
+            return None
+        dd = -(gd + Hpd @ dp) / Dd
+        cand = T @ se3_exp(dp), np.maximum(rho + dd, 1e-4)
+        return robust_cost(residual(*cand))
+
+    def accept(cur, c):
+        nonlocal T, rho
+        T, rho = cand
+        return cur - c < 1e-10 * max(cur, 1e-30)
+
+    minimize(robust_cost(residual(T0, rho)), lambda lam: linearize(T, rho), propose, accept, iterations)
     Hpp, Hpd, Hdd, _, _ = linearize(T, rho)
     S = Hpp - (Hpd / np.maximum(Hdd, 1e-18)[:, None]).T @ Hpd
     r = residual(T, rho)

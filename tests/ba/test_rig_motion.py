@@ -178,7 +178,7 @@ def test_window_keeps_a_two_view_step_against_few_wrong_links():
                 few = matches(views, odo.views[2], 2)[rng.permutation(len(matches(views, odo.views[2], 2)))[:15]]
                 few[:6, 2] = np.roll(few[:6, 2], 1)  # each of the six to another keypoint
                 odo.tracks.link(3, np.concatenate([few, matches(views, odo.views[1], 1)]))
-        odo._adjust(None)
+        odo.adjust(None)
         dt, dr = pose_distance(odo.relative(1, 2), np.linalg.inv(poses[1]) @ poses[2])
         assert dt < 0.01 and np.degrees(dr) < 0.05, (seed, dt, np.degrees(dr))  # 0.7-3 mm, 0.01-0.02 degrees
 
@@ -243,7 +243,7 @@ def test_two_view_factor_weights_and_checkpoint():
         if f in steps:
             odo.two_view[f], odo.step_cov[f] = steps[f], cov
     window = odo.frames[-4:]  # 1, 2, 3, 4: the steps into 3 and 4
-    fac = odo._two_view_factors(window, 0.04)
+    fac = odo.two_view_factors(window, 0.04)
     assert [tuple(p) for p in fac.pairs] == [(1, 2), (2, 3)]
     np.testing.assert_allclose(fac.info[0], 0.04 * np.linalg.inv(cov), rtol=1e-9)
     np.testing.assert_allclose(np.linalg.inv(fac.M_inv[1]), steps[4], atol=1e-12)

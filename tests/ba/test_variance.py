@@ -155,14 +155,14 @@ def test_odometry_covariance_carries_the_measured_keypoint_noise(synthetic_seq):
     for noise in (0.25, 1.0):
         prob = tracks(rig, poses, 300, np.random.default_rng(7), noise_px=noise)
         f = KeypointFactors(prob, rig, 8, 10.0, 1e-3)  # a wide Huber threshold: least squares
-        covs.append(np.trace(odo._step_covariance(f, poses)))
+        covs.append(np.trace(odo.step_covariance(f, poses)))
     assert 10 < covs[1] / covs[0] < 25, covs
     # a measured step that holds the frame before the newest (a two-view step, already in the
     # tracks' units) takes part in the newest step's covariance: it shrinks
     from mcgs_warp.ba.pose_factors import RelativePoseFactors
 
     held = RelativePoseFactors([(2, 3)], [np.linalg.inv(poses[2]) @ poses[3]], [1e8 * np.eye(6)])
-    assert np.trace(odo._step_covariance(f, poses, held)) < 0.9 * covs[1]
+    assert np.trace(odo.step_covariance(f, poses, held)) < 0.9 * covs[1]
 
 
 def test_disagreement_factor_recovers_the_dense_variance_and_sees_a_bias():

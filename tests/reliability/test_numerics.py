@@ -68,8 +68,8 @@ def test_textureless_frames_and_zero_flow(tmp_path):
     from mcgs_warp.data import FolderSequence, FolderWriter, Trajectory
     from mcgs_warp.geometry import pose
     from mcgs_warp.rig import CameraSpec, Rig
-    from mcgs_warp.system.config import RunConfig
     from mcgs_warp.system.run import run_sequence
+    from run_configs import small_config
 
     rig = Rig([CameraSpec("a", "pinhole", 64, 48, (50.0, 50.0, 31.5, 23.5))])
     w = FolderWriter(tmp_path / "flat", rig)
@@ -77,10 +77,7 @@ def test_textureless_frames_and_zero_flow(tmp_path):
         w.write_frame(k, [np.full((48, 64, 3), 0.5)], [np.full((48, 64), 2.0)])
     moving = np.stack([np.zeros(4), np.zeros(4), 0.05 * np.arange(4)], 1)  # along the optical axis
     w.finish(np.arange(4) * 0.1, Trajectory(np.arange(4) * 0.1, pose(moving, np.tile([0, 0, 0, 1.0], (4, 1)))))
-    cfg = RunConfig()
-    cfg.mapping.iterations_per_keyframe = 2
-    cfg.refinement.iterations = 2
-    cfg.output.renders = 1
+    cfg = small_config(mcba_iterations=None, mapping_iterations=2, global_ba_iterations=None, refinement_iterations=2, renders=1)
     m = run_sequence(FolderSequence(tmp_path / "flat").root, tmp_path / "out", cfg, progress=False)
     assert m["n_keyframes"] == 2 and np.isfinite(m["psnr_db"])
     assert m["tracking_failure_frames"] == [3], m["tracking_failure_frames"]

@@ -11,22 +11,15 @@ import warp as wp
 from mcgs_warp.data.synthetic import generate
 from mcgs_warp.data.trajectory import read_tum
 from mcgs_warp.errors import InputError
-from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
 
-def small_config(keypoint_weight: float = 0.0):
-    cfg = RunConfig()
-    cfg.tracking.keypoint_weight = keypoint_weight
-    cfg.tracking.mcba_iterations = 2
-    cfg.mapping.iterations_per_keyframe = 3
-    cfg.refinement.global_ba_iterations = 1
-    cfg.refinement.iterations = 3
-    cfg.output.renders = 0
-    cfg.tracking.stereo.temporal_baseline = 0.1  # keyframes' time-baseline sweeps on this slow drive: the checkpoint carries them
-    return cfg
+def config(keypoint_weight: float = 0.0):
+    # stereo.temporal_baseline: keyframes' time-baseline sweeps on this slow drive (the checkpoint carries them)
+    return small_config(refinement_iterations=3, keypoint_weight=keypoint_weight, stereo={"temporal_baseline": 0.1})
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +31,7 @@ def uninterrupted(tmp_path_factory):
         if depth not in made:
             root = tmp_path_factory.mktemp(f"resume_{depth}")
             generate(root / "data", n_cameras=2, n_frames=7, seed=4, progress=False, depth=depth)
-            made[depth] = (root / "data", root / "full", run_sequence(root / "data", root / "full", small_config(1.0 if depth == "none" else 0.0), progress=False))
+            made[depth] = (root / "data", root / "full", run_sequence(root / "data", root / "full", config(1.0 if depth == "none" else 0.0), progress=False))
         return made[depth]
 
     return get
@@ -54,10 +47,10 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     data, full_out, full = uninterrupted(depth)
     weight = 1.0 if depth == "none" else 0.0
     with pytest.raises(KeyboardInterrupt):
-        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, stop_after_keyframes=stop)
+        run_sequence(data, tmp_path / "cut", config(weight), progress=False, stop_after_keyframes=stop)
     assert (tmp_path / "cut" / "checkpoint.npz").is_file()
     assert not (tmp_path / "cut" / "trajectory.txt").exists()  # nothing final before the end
-    resumed = run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
+    resumed = run_sequence(data, tmp_path / "cut", config(weight), progress=False, resume=True)
     a = read_tum(full_out / "trajectory.txt")
     b = read_tum(tmp_path / "cut" / "trajectory.txt")
     assert full["n_keyframes"] == resumed["n_keyframes"] >= 3
@@ -65,7 +58,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     if wp.get_device().is_cuda:
         # CUDA's float atomics (the renderer's adjoint) sum in a varying order, so two
         # uninterrupted runs already differ: the resumed run may differ no more than that.
-        run_sequence(data, tmp_path / "again", small_config(weight), progress=False)
+        run_sequence(data, tmp_path / "again", config(weight), progress=False)
         spread = np.abs(read_tum(tmp_path / "again" / "trajectory.txt").poses - a.poses).max()
         atol = max(atol, 5 * spread)
     np.testing.assert_allclose(b.positions, a.positions, atol=atol)
@@ -75,7 +68,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     if depth == "exact" or stop > 1:
         return
 
-    other = small_config(weight)
+    other = config(weight)
     other.mapping.iterations_per_keyframe = 4
     with pytest.raises(InputError, match="another configuration"):
         run_sequence(data, tmp_path / "cut", other, progress=False, resume=True)
@@ -85,7 +78,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     stamps = np.loadtxt(shifted / "timestamps.txt", ndmin=2)[:, 0]
     (shifted / "timestamps.txt").write_text("".join(f"{t + 0.05:.6f}\n" for t in stamps))
     with pytest.raises(InputError, match="another configuration or sequence"):
-        run_sequence(shifted, tmp_path / "cut", small_config(weight), progress=False, resume=True)
+        run_sequence(shifted, tmp_path / "cut", config(weight), progress=False, resume=True)
     # one file per mapped keyframe beside the checkpoint (replaced ones are pruned)
     with np.load(tmp_path / "cut" / "checkpoint.npz") as z:
         names = set(z["keyframe_files"].tolist())
@@ -100,7 +93,7 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     assert any((tmp_path / "cut" / "checkpoint.corr").glob("seg_*.npz"))
     shutil.rmtree(tmp_path / "cut" / "checkpoint.corr")
     with pytest.raises(InputError, match="checkpoint.corr"):
-        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
+        run_sequence(data, tmp_path / "cut", config(weight), progress=False, resume=True)
     # a checkpoint of an older version is refused by name (one without a format number:
     # before 2026-11-27), and a damaged one names the array it lacks
     ckpt = tmp_path / "cut" / "checkpoint.npz"
@@ -109,10 +102,10 @@ def test_interrupted_then_resumed_run_matches_an_uninterrupted_one(uninterrupted
     meta = json.loads(str(arrays["meta"]))
     np.savez(ckpt, **dict(arrays, meta=np.array(json.dumps({k: v for k, v in meta.items() if k != "format"}))))
     with pytest.raises(InputError, match="older version \\(format 1"):
-        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
+        run_sequence(data, tmp_path / "cut", config(weight), progress=False, resume=True)
     np.savez(ckpt, **{k: v for k, v in arrays.items() if k != "exposure"})
     with pytest.raises(InputError, match="no array 'exposure'"):
-        run_sequence(data, tmp_path / "cut", small_config(weight), progress=False, resume=True)
+        run_sequence(data, tmp_path / "cut", config(weight), progress=False, resume=True)
 
 
 def test_checkpoint_rewrites_only_the_keyframes_that_changed(tmp_path, monkeypatch):

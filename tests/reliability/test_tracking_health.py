@@ -11,8 +11,8 @@ import pytest
 from mcgs_warp.data.synthetic import generate, rig_trajectory
 from mcgs_warp.data.trajectory import Trajectory
 from mcgs_warp.geometry import pose
-from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
@@ -20,14 +20,7 @@ JUMP_AT = 4
 
 
 def config(keypoints: bool = True):
-    cfg = RunConfig()
-    cfg.tracking.keypoints = keypoints
-    cfg.tracking.mcba_iterations = 2
-    cfg.mapping.iterations_per_keyframe = 2
-    cfg.refinement.global_ba_iterations = 0
-    cfg.refinement.iterations = 0
-    cfg.output.renders = 0
-    return cfg
+    return small_config(mapping_iterations=2, global_ba_iterations=0, refinement_iterations=0, keypoints=keypoints)
 
 
 def jumping_trajectory(n: int) -> Trajectory:

@@ -10,23 +10,13 @@ from mcgs_warp.data.euroc import EurocSequence
 from mcgs_warp.data.kitti import KittiSequence
 from mcgs_warp.data.synthetic import generate
 from mcgs_warp.data.tum import TumSequence
-from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 from formats import stereo_rig, write_euroc, write_kitti, write_tum
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
 N_FRAMES = 8
-
-
-def run_config():
-    cfg = RunConfig()
-    cfg.tracking.mcba_iterations = 3
-    cfg.mapping.iterations_per_keyframe = 3
-    cfg.refinement.global_ba_iterations = 2
-    cfg.refinement.iterations = 4
-    cfg.output.renders = 0
-    return cfg
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +63,7 @@ def test_dataset_layouts_read_back_and_run(source, layout):
         else:
             np.testing.assert_allclose(f.images[c][..., 1], grey(g.images[c]), atol=0.6 / 255)
             assert f.depths[c] is None
-    m = run_sequence(data, root / f"run_{layout}", run_config(), progress=False)
+    m = run_sequence(data, root / f"run_{layout}", small_config(mcba_iterations=3, global_ba_iterations=2), progress=False)
     assert m["depth_source"] == ("sensor" if layout == "tum" else "stereo") and m["metric_scale"] is True
     assert m["n_keyframes"] >= 3 and m["tracking_failures"] == 0, m
     # measured: SE(3) ATE 0.15 % (EuRoC), 0.16 % (KITTI), 0.21 % (TUM) of the path, scale within 0.3 %
@@ -91,7 +81,7 @@ def test_bag_of_the_sequence_runs_end_to_end(source):
 
     root, seq = source
     bag, rig = write_bag(seq, root / "recording.bag")
-    m = run_sequence(bag, root / "run_bag", run_config(), rig=rig, progress=False)
+    m = run_sequence(bag, root / "run_bag", small_config(mcba_iterations=3, global_ba_iterations=2), rig=rig, progress=False)
     assert m["depth_source"] == "stereo" and m["metric_scale"] is True and m["n_keyframes"] >= 3 and m["tracking_failures"] == 0, m
     # the bag carries no ground truth: the folder's, against the bag run's trajectory
     se3 = evaluate(read_tum(root / "run_bag" / "trajectory.txt"), seq.groundtruth, with_scale=False)[0]

@@ -10,20 +10,14 @@ from mcgs_warp.data.synthetic import generate
 from mcgs_warp.data.trajectory import Trajectory, read_tum, write_tum
 from mcgs_warp.errors import InputError
 from mcgs_warp.geometry import invert, se3_exp
-from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
 
-def small_config():
-    cfg = RunConfig()
-    cfg.tracking.mcba_iterations = 2
-    cfg.mapping.iterations_per_keyframe = 4
-    cfg.refinement.global_ba_iterations = 1
-    cfg.refinement.iterations = 20
-    cfg.output.renders = 0
-    return cfg
+def config():
+    return small_config(mapping_iterations=4, refinement_iterations=20)
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +27,7 @@ def rgb_sequence(tmp_path_factory):
 
 def test_mapping_from_the_true_poses_reproduces_the_scene(rgb_sequence, tmp_path):
     seq = rgb_sequence
-    m = run_sequence(seq.root, tmp_path / "map", small_config(), progress=False, poses="groundtruth")
+    m = run_sequence(seq.root, tmp_path / "map", config(), progress=False, poses="groundtruth")
     gt = seq.groundtruth.poses
     traj = read_tum(tmp_path / "map" / "trajectory.txt")
     # every frame at its given pose, in the first frame's rig frame
@@ -54,7 +48,7 @@ def test_refine_poses_lets_the_refinement_move_a_perturbed_trajectory(rgb_sequen
     gt = seq.groundtruth
     rng = np.random.default_rng(0)
     noisy = Trajectory(gt.timestamps, np.stack([T @ se3_exp(np.concatenate([rng.normal(0, 0.02, 3), rng.normal(0, 0.004, 3)])) if i else T for i, T in enumerate(gt.poses)]))
-    cfg = small_config()
+    cfg = config()
     cfg.refinement.iterations = 100  # 20 steps move a keyframe by about 1 mm at lr_pose, too little to tell from the map's own change; 100 up to 5 mm (keyframe ATE 1.92 -> 1.74 cm)
     refined = run_sequence(seq.root, tmp_path / "refined", cfg, progress=False, poses=noisy, refine_poses=True)
     moved = read_tum(tmp_path / "refined" / "trajectory.txt").poses
@@ -75,6 +69,6 @@ def test_given_poses_must_cover_the_sequence(rgb_sequence, tmp_path, capsys):
     (seq.root / "groundtruth.txt").rename(tmp_path / "gt.txt")
     try:
         with pytest.raises(InputError, match="ground-truth poses"):
-            run_sequence(seq.root, tmp_path / "r2", small_config(), progress=False, poses="groundtruth")
+            run_sequence(seq.root, tmp_path / "r2", config(), progress=False, poses="groundtruth")
     finally:
         (tmp_path / "gt.txt").rename(seq.root / "groundtruth.txt")

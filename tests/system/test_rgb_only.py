@@ -10,17 +10,13 @@ from mcgs_warp.cli import main
 from mcgs_warp.data.synthetic import generate
 from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
 
-def short_config(correspondences="estimated"):
-    cfg = RunConfig()
-    cfg.tracking.correspondences = correspondences
-    cfg.mapping.iterations_per_keyframe = 5
-    cfg.refinement.iterations = 10
-    cfg.output.renders = 0
-    return cfg
+def short_config():
+    return small_config(mcba_iterations=None, mapping_iterations=5, global_ba_iterations=None, refinement_iterations=10)
 
 
 @pytest.fixture(scope="module")

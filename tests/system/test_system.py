@@ -13,27 +13,17 @@ from mcgs_warp.data.trajectory import Trajectory, read_tum, write_tum
 from mcgs_warp.eval.trajectory import evaluate
 from mcgs_warp.io.ply import SH_C0, read_ply
 from mcgs_warp.io.usd import read_usd_map
-from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
-
-
-def fast_config():
-    cfg = RunConfig()
-    cfg.tracking.mcba_iterations = 2
-    cfg.mapping.iterations_per_keyframe = 3
-    cfg.refinement.global_ba_iterations = 1
-    cfg.refinement.iterations = 4
-    cfg.output.renders = 1
-    return cfg
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("system")
     generate(root / "data", n_cameras=3, n_frames=6, seed=2, progress=False)
-    metrics = run_sequence(root / "data", root / "run", fast_config(), progress=False)
+    metrics = run_sequence(root / "data", root / "run", small_config(renders=1), progress=False)
     return root, metrics
 
 

@@ -13,8 +13,8 @@ from mcgs_warp.data import synthetic
 from mcgs_warp.data.realism import CameraRealism
 from mcgs_warp.data.trajectory import Trajectory, read_tum
 from mcgs_warp.geometry import yaw_pitch_roll
-from mcgs_warp.system.config import RunConfig
 from mcgs_warp.system.run import run_sequence
+from run_configs import small_config
 
 pytestmark = pytest.mark.slow  # runs the whole system: `pytest -m "not slow"` leaves it out
 
@@ -65,10 +65,7 @@ def test_steps_in_front_of_a_faint_tiled_wall_keep_their_length(tmp_path, monkey
     monkeypatch.setattr(synthetic, "build_scene", wall_world)
     realism = CameraRealism(exposure_s=0.03, shot=1e-3, read=0.01)
     synthetic.generate(tmp_path / "data", n_cameras=1, seed=0, depth="exact", trajectory=wall_trajectory(), realism="camera", realism_config=realism, progress=False)
-    cfg = RunConfig()
-    cfg.mapping.iterations_per_keyframe = 0
-    cfg.refinement.iterations = 0
-    cfg.output.renders = 0
+    cfg = small_config(mcba_iterations=None, mapping_iterations=0, global_ba_iterations=None, refinement_iterations=0)
     run_sequence(tmp_path / "data", tmp_path / "run", cfg, progress=False)
     kfs = read_tum(tmp_path / "run" / "keyframes.txt")
     gt = read_tum(tmp_path / "data" / "groundtruth.txt")
