@@ -79,6 +79,10 @@ class FlowConfig:
     patch_size: int = 4  # px
     smoothness: float = 5.0  # weight of flow smoothness in DIS's variational refinement (fewer gross errors on wide edges than the preset's 20)
     sigma: float = 1.0  # full-resolution px: the forward-backward error at which a match's confidence is exp(-1)
+    settled_px: float = 0.25  # guided DIS: an edge whose guided flow moved less than this (full-resolution px, median) since its last match ...
+    settled_outliers: float = 0.05  # ... with fewer than this share of its pixels moved more than 1 px is not matched again (GuidedDIS.settled)
+    photo_sigma: float = 0.02  # grey levels in [0,1]: a guided match's confidence also falls as exp(-(SAD / photo_sigma)^2)
+    min_confident: float = 0.25  # with exact sensor depth, a view whose guided matches are confident on fewer of its grid pixels than this share takes raw DIS instead (GuidedOrRaw)
     exact_depth_preset: bool = True  # with exact sensor depth the correspondences only constrain the poses: DIS's medium preset (half resolution, 8 px patches; 3.7x cheaper per call, the demo's SE(3) ATE 2.54 vs 2.31 mm) instead of the settings above
 
 

@@ -41,6 +41,9 @@ MINIMUMS = {
     ("tracking", "mcba_iterations"): (1, False, "0 would never move a pose"),
     ("tracking", "flow_rounds"): (1, False, "each keyframe needs one MCBA round"),
     ("tracking", "huber_px"): (0.0, True, "0 would give every residual zero weight"),
+    ("tracking", "lm_lambda"): (0.0, True, "the damping is multiplied, never added: 0 stays 0"),
+    ("tracking", "jdsa_rows"): (1, False, "a scale grid has at least one node per axis"),
+    ("tracking", "jdsa_cols"): (1, False, "a scale grid has at least one node per axis"),
     ("mapping", "insert_stride"): (1, False, "new Gaussians every insert_stride-th pixel"),
     ("mapping", "fill_opacity"): (0.0, True, "an opacity of 0 is a logit of minus infinity"),
     ("mapping", "background_cube"): (0, False, "texels per cube face"),
@@ -64,6 +67,8 @@ MINIMUMS = {
     ("tracking.odometry", "huber_px"): (0.0, True, "0 would give every residual zero weight"),
     ("tracking.flow", "patch_size"): (1, False, "DIS patches are at least 1 px"),
     ("tracking.flow", "sigma"): (0.0, True, "the confidence divides by it"),
+    ("tracking.flow", "photo_sigma"): (0.0, True, "the photometric factor divides by it"),
+    ("tracking.flow", "settled_px"): (0.0, False, "a distance in pixels"),
     ("tracking.graph", "sample"): (1, False, "overlap is measured on every sample-th grid pixel"),
     ("tracking.graph", "max_angle"): (0.0, True, "0 would link no pair"),
     ("tracking.graph", "loop_max_per_view"): (1, False, "a loop candidate needs a partner (refinement.global_ba_iterations: 0 skips loops)"),
@@ -77,6 +82,8 @@ MAXIMUMS = {
     ("tracking.stereo", "max_disparity"): (1.0, False, "a share of the image width"),
     ("tracking.keypoint_matching", "ratio"): (1.0, False, "nearest / second nearest descriptor distance"),
     ("tracking.keypoint_matching", "min_inlier_ratio"): (1.0, False, "a share of the matches"),
+    ("tracking.flow", "settled_outliers"): (1.0, False, "a share of the edge's pixels"),
+    ("tracking.flow", "min_confident"): (1.0, False, "a share of the view's grid pixels"),
     ("tracking.graph", "max_angle"): (180.0, False, "degrees between optical axes"),
     ("tracking.graph", "loop_max_angle"): (180.0, False, "degrees between optical axes"),
     ("tracking.graph", "min_overlap"): (1.0, False, "a share of the view"),
@@ -102,8 +109,11 @@ class TrackingConfig:
     cross_view: bool = True  # edges between overlapping cameras at one timestamp (eq. 8); never with exact sensor depth, which already fixes the depth they measure
     mcba_iterations: int = MCBAConfig.iterations  # Levenberg-Marquardt iterations per MCBA solve
     huber_px: float = MCBAConfig.huber_delta  # grid px: Huber threshold of the reprojection residuals
+    lm_lambda: float = MCBAConfig.lm_lambda  # MCBA's initial Levenberg-Marquardt damping, relative to the diagonal (global BA starts from it too)
     prior_weight: float = 30.0  # px^2 m^2: weight of a metric depth prior (sensor, stereo, monocular) in inverse depth, times its confidence
     jdsa: bool = True  # fit the JDSA scale grids (eq. 5) after every MCBA round, for inexact priors
+    jdsa_rows: int = 4  # JDSA scale grid per view: rows ...
+    jdsa_cols: int = 6  # ... and columns of bilinearly interpolated scale nodes
     min_confident: float = 0.05  # a new keyframe with confident correspondences on fewer of its grid pixels than this fraction is a tracking failure
     max_residual_ratio: float = 10.0  # ... and so is one whose final robust cost per unit of correspondence weight exceeds this times the run's median
     keypoints: bool = True  # anchor each new keyframe's pose by keypoints matched against recent keyframes (multi-camera PnP; false: the constant-velocity prediction alone) and relocalize failed keyframes by them

@@ -79,7 +79,7 @@ class SLAM:
         self.seq = sequence
         self.cfg = config
         self.progress = progress or Progress(False)
-        self.buf = KeyframeBuffer(sequence.rig, stride=config.tracking.stride, device=device)  # grows with the keyframes
+        self.buf = KeyframeBuffer(sequence.rig, stride=config.tracking.stride, scale_grid=(config.tracking.jdsa_rows, config.tracking.jdsa_cols), device=device)  # grows with the keyframes
         self.tracker = self.make_tracker()
         # a region exact sensor depth measures is not sky
         self.mapper = Mapper(self.buf, GaussianMap(self.buf.device), config.mapping, seed=config.seed, sky_depth_veto=self.tracker.exact_depth)

@@ -68,8 +68,8 @@ class Tracker:
         # exact sensor depth they only constrain the poses, and the preset is cheaper (FlowConfig)
         fc = tc.flow
         self.flow = DISFlow(sigma=fc.sigma) if self.exact_depth and fc.exact_depth_preset else DISFlow(sigma=fc.sigma, finest_scale=fc.finest_scale, patch_size=fc.patch_size, smoothness=fc.smoothness)
-        self.guided = GuidedDIS(self.flow)
-        self.guided_or_raw = GuidedOrRaw(self.guided, self.flow)
+        self.guided = GuidedDIS(self.flow, settled_px=fc.settled_px, settled_outliers=fc.settled_outliers, photo_sigma=fc.photo_sigma)
+        self.guided_or_raw = GuidedOrRaw(self.guided, self.flow, min_confident=fc.min_confident)
         self.selector = KeyframeSelector(DISFlow(), sequence.rig.cameras, threshold=tc.keyframe_flow)  # a mean flow: half resolution is enough
         # Cross-view edges (eq. 8) constrain only depth; exact sensor depth already fixes it,
         # so with it they cost their sweeps and change nothing (demo: 4.3 vs 4.5 mm SE(3) ATE).
@@ -83,7 +83,7 @@ class Tracker:
         self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, tc.keypoint_matching, seed=config.seed) if tc.keypoints else None
         self.odometry = KeypointOdometry(sequence.rig, rig_overlap, self.stereo.pairs, tc.odometry, tc.keypoint_matching, seed=config.seed) if tc.keypoints else None  # every frame's motion
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
-        self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, prior_weight=tc.prior_weight if self.prior.metric else 0.0, variance_components=tc.variance_components))
+        self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, lm_lambda=tc.lm_lambda, prior_weight=tc.prior_weight if self.prior.metric else 0.0, variance_components=tc.variance_components))
         self.graph = FactorGraph(self.buf, self.overlap, replace(tc.graph, max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
         self._events: list = []  # what the map must follow since the last update (:meth:`take_update`)
         self.filler = TrajectoryFiller(buffer, sequence.timestamps, self.frame_poses)  # every frame's pose, from the keyframes' and each frame's motion

@@ -1,0 +1,36 @@
+"""Tracking settings that were constants: each reaches the stage that uses it, and the
+config loader bounds it."""
+
+import pytest
+
+from mcgs_warp.errors import InputError
+from mcgs_warp.system.config import load_run_config
+from mcgs_warp.system.slam import SLAM
+
+
+def _config(tmp_path, text):
+    path = tmp_path / "run.yaml"
+    path.write_text(text)
+    return load_run_config(path)
+
+
+def test_defaults_are_the_former_constants(synthetic_seq):
+    slam = SLAM(synthetic_seq, load_run_config())
+    t = slam.tracker
+    assert slam.buf.scale_grid == (4, 6) and t.mcba.cfg.lm_lambda == 1e-4
+    assert (t.guided.settled_px, t.guided.settled_outliers, t.guided.photo_sigma, t.guided_or_raw.min_confident) == (0.25, 0.05, 0.02, 0.25)
+
+
+def test_settings_reach_their_stages(synthetic_seq, tmp_path):
+    cfg = _config(tmp_path, "tracking:\n  lm_lambda: 0.01\n  jdsa_rows: 2\n  jdsa_cols: 3\n  flow:\n    settled_px: 0.5\n    settled_outliers: 0.1\n    photo_sigma: 0.04\n    min_confident: 0.3\n")
+    slam = SLAM(synthetic_seq, cfg)
+    t = slam.tracker
+    assert slam.buf.scale_grid == (2, 3) and slam.buf.scales.shape[1:] == (len(synthetic_seq.rig), 2, 3)  # each keyframe's JDSA grid
+    assert t.mcba.cfg.lm_lambda == 0.01
+    assert (t.guided.settled_px, t.guided.settled_outliers, t.guided.photo_sigma, t.guided_or_raw.min_confident) == (0.5, 0.1, 0.04, 0.3)
+
+
+@pytest.mark.parametrize("text, key", [("tracking:\n  lm_lambda: 0\n", "lm_lambda"), ("tracking:\n  jdsa_rows: 0\n", "jdsa_rows"), ("tracking:\n  flow:\n    settled_outliers: 1.5\n", "settled_outliers"), ("tracking:\n  flow:\n    photo_sigma: 0\n", "photo_sigma")])
+def test_values_that_break_a_stage_are_refused(tmp_path, text, key):
+    with pytest.raises(InputError, match=key):
+        _config(tmp_path, text)
