@@ -71,6 +71,12 @@ class RunResult:
     seconds: dict = field(default_factory=dict)
 
 
+def refinement_steps(rc, keyframes: int) -> int:
+    """Joint refinement's steps for ``keyframes`` registered keyframes: ``rc.iterations``, at
+    most ``rc.steps_per_keyframe`` per keyframe (0: no limit)."""
+    return min(rc.iterations, rc.steps_per_keyframe * keyframes) if rc.steps_per_keyframe > 0 else rc.iterations
+
+
 class SLAM:
     """The system: its stages (:attr:`tracker`, :attr:`mapper`, :attr:`backend`), the loop over
     the frames (:meth:`run`) and the offline stage (:meth:`refine`)."""
@@ -151,12 +157,13 @@ class SLAM:
                 self.mapper.replace_targets(photo_consistent_targets(self.buf, tracker.stereo.pairs, range(len(self.buf)), rc.photo_depth_radius, rc.photo_depth_min_views, self.progress))
                 release_freed_memory()
                 self.seconds["photo_depth"] = time.perf_counter() - t1
-        if rc.iterations:
+        iterations = refinement_steps(rc, len(self.buf.targets))
+        if iterations:
             def report(it, r):
-                self.progress("refining", it + 1, rc.iterations, f"psnr {r.psnr:.1f} dB")
+                self.progress("refining", it + 1, iterations, f"psnr {r.psnr:.1f} dB")
                 if (it + 1) % 30 == 0:
                     release_freed_memory()
 
-            joint_refinement(self.mapper, rc.iterations, poses=rc.poses, exposure=rc.exposure, progress=report)
+            joint_refinement(self.mapper, iterations, poses=rc.poses, exposure=rc.exposure, progress=report)
             self.progress.done()
         self.seconds["refinement"] += time.perf_counter() - t0

@@ -34,3 +34,20 @@ def test_settings_reach_their_stages(synthetic_seq, tmp_path):
 def test_values_that_break_a_stage_are_refused(tmp_path, text, key):
     with pytest.raises(InputError, match=key):
         _config(tmp_path, text)
+
+
+def test_refinement_takes_at_most_its_steps_per_keyframe(synthetic_seq, tmp_path, monkeypatch):
+    """Joint refinement: ``refinement.iterations`` steps, at most ``steps_per_keyframe`` per
+    registered keyframe (one step renders one keyframe's cameras): DDAD's 2 keyframes take 120
+    steps, not 360; 0 lifts the limit."""
+    import mcgs_warp.system.slam as slam_module
+
+    steps = []
+    monkeypatch.setattr(slam_module, "joint_refinement", lambda mapper, n, **kw: steps.append(n))
+    for text, registered, expected in (("", 2, 120), ("", 7, 360), ("refinement:\n  steps_per_keyframe: 0\n", 2, 360), ("refinement:\n  steps_per_keyframe: 10\n  iterations: 50\n", 3, 30)):
+        slam = SLAM(synthetic_seq, _config(tmp_path, text or "{}\n"))
+        slam.buf.targets.update({k: None for k in range(registered)})  # registered keyframes (the count is what matters)
+        slam.refine()
+        assert steps[-1] == expected, (text, registered, steps)
+    with pytest.raises(InputError, match="steps_per_keyframe"):
+        _config(tmp_path, "refinement:\n  steps_per_keyframe: -1\n")
