@@ -226,3 +226,23 @@ def test_cli_synth_casts_a_rig_of_your_own(tmp_path):
     assert (depth[no_ray] == 0).all() and (depth[~no_ray] > 0).mean() > 0.99
     res = subprocess.run(cmd + ["--cameras", "2"], capture_output=True, text=True)
     assert res.returncode == 2 and "--cameras" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_late_camera_sees_where_the_rig_is_at_its_own_time(tmp_path):
+    """``camera_delays``: camera 1 firing one frame period (0.1 s) late sees at frame k what it
+    sees undelayed at frame k + 1; camera 0, undelayed, is untouched; the folder still stamps
+    synchronized frames. Past the last pose the motion is extrapolated."""
+    from mcgs_warp.data.synthetic import FRAME_RATE, pose_at, rig_trajectory
+
+    plain = generate(tmp_path / "plain", n_cameras=2, n_frames=4, progress=False, depth="none")
+    late = generate(tmp_path / "late", n_cameras=2, n_frames=4, progress=False, depth="none", camera_delays=[0.0, 1.0 / FRAME_RATE])
+    assert np.array_equal(late.timestamps, plain.timestamps)
+    for k in range(3):
+        assert np.array_equal(late[k].images[0], plain[k].images[0])
+        assert np.abs(late[k].images[1] - plain[k + 1].images[1]).mean() < 1e-3, k
+        assert np.abs(late[k].images[1] - plain[k].images[1]).mean() > 1e-2, k  # the rig moved in between
+    traj = rig_trajectory(4)
+    step = traj.poses[3][:3, 3] - traj.poses[2][:3, 3]
+    assert np.allclose(pose_at(traj, traj.timestamps[3] + 0.05)[:3, 3], traj.poses[3][:3, 3] + 0.5 * step)
+    with pytest.raises(ValueError, match="camera_delays"):
+        generate(tmp_path / "bad", n_cameras=2, n_frames=2, progress=False, camera_delays=[0.0])
