@@ -171,11 +171,10 @@ class SceneRenderer:
 def pose_at(traj: Trajectory, t: float) -> np.ndarray:
     """The body pose [4,4] of ``traj`` at time ``t`` (s), interpolated between its poses and
     extrapolated along the first or last motion beyond its ends."""
-    from .trajectory import interpolate_pose
+    from .trajectory import bracket, interpolate_pose
 
-    ts = traj.timestamps
-    j = int(np.clip(np.searchsorted(ts, t), 1, len(ts) - 1))
-    return interpolate_pose(traj.poses[j - 1], traj.poses[j], float((t - ts[j - 1]) / (ts[j] - ts[j - 1])))
+    a, b, u = bracket(traj.timestamps, t, clamp=False)
+    return interpolate_pose(traj.poses[a], traj.poses[b], u)
 
 
 def generate(out, n_cameras: int = 3, n_frames: int = 40, seed: int = 0, device=None, progress: bool = True, depth: str = "exact", trajectory: str | Trajectory = "forward", rig: Rig | None = None, realism: str = "none", realism_config=None, mono_prior: str = "smooth", scene: str = "room", camera_delays=None) -> FolderSequence:

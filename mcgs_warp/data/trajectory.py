@@ -42,14 +42,16 @@ def nearest_timestamps(t_a: np.ndarray, t_b: np.ndarray, max_dt: float) -> np.nd
     return np.where(np.abs(t_b[j] - t_a) <= max_dt, j, -1)
 
 
-def bracket(timestamps, t: float) -> tuple[int, int, float]:
+def bracket(timestamps, t: float, clamp: bool = True) -> tuple[int, int, float]:
     """The two of increasing ``timestamps`` [K] (s) around time ``t`` (s) and how far ``t``
     lies from the first to the second: ``(a, a + 1, u)`` with ``u`` in [0, 1] (clamped before
-    the first time and after the last); ``(0, 0, 0.0)`` for a single time."""
+    the first time and after the last; without ``clamp``, below 0 or above 1 there: the first
+    or last interval extrapolated); ``(0, 0, 0.0)`` for a single time."""
     if len(timestamps) == 1:
         return 0, 0, 0.0
     j = int(np.clip(np.searchsorted(timestamps, t), 1, len(timestamps) - 1))
-    return j - 1, j, float(np.clip((t - timestamps[j - 1]) / max(timestamps[j] - timestamps[j - 1], 1e-12), 0.0, 1.0))
+    u = (t - timestamps[j - 1]) / max(timestamps[j] - timestamps[j - 1], 1e-12)
+    return j - 1, j, float(np.clip(u, 0.0, 1.0) if clamp else u)
 
 
 def interpolate_pose(A: np.ndarray, B: np.ndarray, u: float) -> np.ndarray:
