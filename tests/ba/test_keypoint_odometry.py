@@ -157,3 +157,22 @@ def test_a_late_stereo_partner_does_not_lengthen_the_path(tmp_path):
     G = seq.groundtruth.poses[:, :3, 3]
     ratio = np.linalg.norm(np.diff(P, axis=0), axis=1).sum() / np.linalg.norm(np.diff(G, axis=0), axis=1).sum()
     assert abs(ratio - 1) < 0.003, ratio
+
+
+def test_every_camera_joins_where_the_observers_find_no_pose(monkeypatch):
+    """``localize``: the observers' matches first; where they give no pose, every camera's."""
+    from types import SimpleNamespace
+
+    from mcgs_warp.frontend.keypoint_tracker import KeypointTracker
+    from mcgs_warp.rig import rig_from_dict
+
+    cam = [dict(name=n, model="pinhole", resolution=[320, 240], intrinsics=[180.0, 180.0, 159.5, 119.5], T_b_c=dict(translation=[0.0, y, 0.0], quaternion=[-0.5, 0.5, -0.5, 0.5])) for n, y in (("left", 0.0), ("right", -0.54))]
+    kt = KeypointTracker(rig_from_dict({"cameras": cam}), np.full((2, 2), 0.9), [(0, 1), (1, 0)])
+    asked, found = [], SimpleNamespace(inlier_ratio=1.0, inliers=[])
+    monkeypatch.setattr(kt, "observations", lambda views, keyframes, poses, depth_at=None, solved=None, cameras=None: (asked.append(cameras), ([], []))[1])
+    for first, expected in ((None, [[0], None]), (found, [[0]])):
+        asked.clear()
+        answers = iter([first, found])
+        monkeypatch.setattr(kt.pnp, "solve", lambda obs, guess=None, min_inliers=20: next(answers))
+        assert kt.localize([None, None], [0], {}) is found
+        assert asked == expected
