@@ -154,7 +154,7 @@ class SLAM:
             self.progress("global BA", 1, 1, force=True)
             if rc.photo_depth_radius > 0 and not tracker.exact_depth:
                 t1 = time.perf_counter()
-                self.mapper.replace_targets(photo_consistent_targets(self.buf, tracker.stereo.pairs, range(len(self.buf)), rc.photo_depth_radius, rc.photo_depth_min_views, self.progress))
+                self.mapper.replace_targets(photo_consistent_targets(self.buf, tracker.stereo.pairs, range(len(self.buf)), rc.photo_depth_radius, rc.photo_depth_min_views, self.progress, rc.photo_depth_sources))
                 release_freed_memory()
                 self.seconds["photo_depth"] = time.perf_counter() - t1
         iterations = refinement_steps(rc, len(self.buf.targets))
