@@ -61,7 +61,7 @@ def photo_consistent_targets(buf, stereo_pairs, keyframes, radius: int, min_view
     T_w_c = {(k, c): poses[k] @ spec.T_b_c for k in range(len(buf)) for c, spec in enumerate(rig.cameras)}
     cams = [spec.warp_camera() for spec in rig.cameras]
     greys: dict = {}
-    rays_np = [r.numpy() for r in rays] if sources > 0 else None
+    rays_np = [rays[c].numpy() for c in range(len(rig))] if sources > 0 else None
 
     def grey_of(k, c):
         if (k, c) not in greys:

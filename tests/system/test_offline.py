@@ -62,7 +62,7 @@ def test_the_pass_matches_each_view_against_its_best_sources_only(monkeypatch):
             return len(poses)
 
     buf = Buffer(
-        rig=Rig(cameras=[spec]), get_poses=lambda: poses, full_rays=[camera_rays(cam, "cpu")],
+        rig=Rig(cameras=[spec]), get_poses=lambda: poses, full_rays=camera_rays(cam, "cpu").reshape((1, 48, 64)),
         image=lambda k, c: grey, targets={k: [depth] for k in range(5)}, device="cpu",
     )
     seen = {}
