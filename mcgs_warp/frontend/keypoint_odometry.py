@@ -58,10 +58,13 @@ class OdometryStep:
 
 
 class KeypointOdometry:
-    def __init__(self, rig: Rig, overlap=None, stereo_pairs=(), config: OdometryConfig | None = None, keypoints: KeypointConfig | None = None, seed: int = 0):
+    def __init__(self, rig: Rig, overlap=None, stereo_pairs=(), config: OdometryConfig | None = None, keypoints: KeypointConfig | None = None, seed: int = 0, tracker: KeypointTracker | None = None):
+        """``tracker``: the keypoint tracker to share (the system's tracker matches its keyframes
+        with the same one); None builds one from ``overlap``, ``stereo_pairs``, ``keypoints`` and ``seed``."""
         self.cfg = config or OdometryConfig()
         self.rig = rig
-        self.tracker = KeypointTracker(rig, overlap, stereo_pairs, keypoints, seed=seed)
+        self.tracker = tracker if tracker is not None else KeypointTracker(rig, overlap, stereo_pairs, keypoints, seed=seed)
+        self.views: dict = {}  # frame -> its keypoints per camera (the last ``frames`` + ``window`` frames are kept)
         self.tracks = KeypointTracks(1.0)
         self.T_b_c = np.stack([c.T_b_c for c in rig.cameras])
         self.frames: list[int] = []  # frame indices in the order tracked
@@ -69,11 +72,6 @@ class KeypointOdometry:
         self.tracked: dict[int, bool] = {}  # frame -> placed by keypoints
         self.step_cov: dict[int, np.ndarray] = {}  # frame -> [6,6] covariance of the step from the frame before (right perturbation of T_prev^-1 T_frame)
         self.two_view: dict[int, np.ndarray] = {}  # frame -> [4,4] its step from the frame before, measured by their 2D-2D matches (:func:`.rig_motion.rig_motion`)
-
-    @property
-    def views(self) -> dict:
-        """frame -> its keypoints per camera (the last ``frames`` + ``window`` frames are kept)."""
-        return self.tracker.views
 
     def track(self, index: int, images, depths=None, depth_at=None) -> OdometryStep:
         """Place frame ``index`` (after every earlier one). ``depths``: exact sensor depth
@@ -87,15 +85,15 @@ class KeypointOdometry:
         else:
             a = P[prev[-1]]
             guess = a if len(prev) < 2 else a @ invert(P[prev[-2]]) @ a  # constant velocity
-            res = self.tracker.localize(views, prev, P, depth_at, guess=guess, solved=self.tracks.world_points)  # poses by frame: a dict serves
+            res = self.tracker.localize(views, self.views, prev, P, depth_at, guess=guess, solved=self.tracks.world_points)  # poses by frame: a dict serves
             T = res.T_w_b if res is not None else guess
             kc = self.tracker.cfg
-            if res is None and sum(int(v.has_depth.sum()) for v in self.tracker.views[prev[-1]]) < kc.min_inliers * len(self.rig):
+            if res is None and sum(int(v.has_depth.sum()) for v in self.views[prev[-1]]) < kc.min_inliers * len(self.rig):
                 # PnP had little to stand on (fewer 3D points per camera, on average, than a pose needs: a surround
                 # rig's few overlapping pixels): the 2D-2D matches' metric motion. Where keypoints have
                 # depth and PnP still found no pose, constant velocity stays (KITTI every 3rd frame:
                 # the two-view step there was 6 % long, constant velocity 4 %)
-                two_view = rig_motion(self.tracker.views[prev[-1]], views, self.rig, self.tracker.partners, kc.ratio, kc.inlier_rad, kc.min_inliers)
+                two_view = rig_motion(self.views[prev[-1]], views, self.rig, self.tracker.partners, kc.ratio, kc.inlier_rad, kc.min_inliers)
                 if two_view is not None:
                     T = a @ two_view.T_a_b
                     self.step_cov[index] = two_view.cov
@@ -103,7 +101,7 @@ class KeypointOdometry:
         self.frames.append(index)
         P[index] = T
         self.tracked[index] = res is not None or not prev or index in self.two_view
-        self.tracker.keep(index, views)
+        self.views[index] = views
         self.tracks.add_views(index, views)
         if res is not None:
             self.tracks.link(index, res.matches)
@@ -119,7 +117,7 @@ class KeypointOdometry:
         cfg = self.cfg
         window = self.frames[-cfg.window :]
         poses_of = self.poses
-        prob, roots = self.tracks.problem(window, lambda k: self.tracker.views[k], poses_of, self.T_b_c, depth_at)
+        prob, roots = self.tracks.problem(window, lambda k: self.views[k], poses_of, self.T_b_c, depth_at)
         n = len(window)
         new = window[-1]
         if prob is None:
@@ -213,8 +211,8 @@ class KeypointOdometry:
     def _forget(self) -> None:
         """Drop keypoints (and track nodes) of frames no new frame will match or adjust again."""
         keep = set(self.recent)
-        for k in [k for k in self.tracker.views if k not in keep]:
-            del self.tracker.views[k]
+        for k in [k for k in self.views if k not in keep]:
+            del self.views[k]
         self.tracks.retain(keep)
 
     def state_arrays(self) -> dict:
@@ -238,7 +236,7 @@ class KeypointOdometry:
         self.two_view = {int(i): T for i, T in zip(a["odometry.two_view"], a["odometry.two_view_steps"], strict=True)}
         for i in self.recent:
             views = views_of(i)
-            self.tracker.keep(i, views)
+            self.views[i] = views
             self.tracks.add_views(i, views)
         self.tracks.load_state_arrays(a, "odometry.tracks.")
 

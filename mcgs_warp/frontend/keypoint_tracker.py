@@ -8,8 +8,10 @@ the keyframe's solved depth where correspondences measured it; then one multi-ca
 (:mod:`.pnp`) with the constant-velocity guess as one more RANSAC hypothesis. The same call
 relocalizes a lost keyframe against any keyframes (no guess).
 
-Inputs: the rig, which camera pairs overlap, and per call the keyframe poses and a
-depth lookup; it owns nothing of the buffer (keyframe keypoints are kept here, by keyframe).
+Inputs: the rig, which camera pairs overlap, and per call the keypoints it matches against
+(``known``: keyframe or frame -> its views, kept by the caller), their poses and a depth lookup.
+It holds no state of a run: the keypoint odometry (every frame) and the tracker's keyframe step
+share one instance, each with its own store of views.
 """
 
 from __future__ import annotations
@@ -69,21 +71,17 @@ class KeypointTracker:
         self.observers = motion_observers(C, overlap, stereo_pairs, cfg.stereo_overlap)
         self.detector = KeypointDetector(rig, stereo_pairs, features=cfg.features, ratio=cfg.ratio)
         self.pnp = RigPnP(rig, inlier_rad=cfg.inlier_rad, seed=seed)
-        self.views: dict[int, list[ViewKeypoints]] = {}  # keyframe -> its keypoints per camera
 
     def detect(self, images, depths=None) -> list[ViewKeypoints]:
         return self.detector.detect(images, depths)
 
-    def keep(self, k: int, views: list[ViewKeypoints]) -> None:
-        self.views[k] = views
-
-    def points_w(self, k: int, T_w_b: np.ndarray, depth_at=None, solved=None) -> list[np.ndarray]:
-        """World points [M,3] (NaN where unknown) of keyframe ``k``'s keypoints per camera:
+    def points_w(self, k: int, views: list[ViewKeypoints], T_w_b: np.ndarray, depth_at=None, solved=None) -> list[np.ndarray]:
+        """World points [M,3] (NaN where unknown) of keyframe ``k``'s keypoints ``views`` per camera:
         ``solved(k, c)`` -> [M,3] world points of their tracks as MCBA last solved them,
         else their own depth (sensor, stereo), else ``depth_at(k, c, uv)`` -> depth [M] (m, 0 =
         unmeasured), the keyframe's solved depth."""
         out = []
-        for c, v in enumerate(self.views[k]):
+        for c, v in enumerate(views):
             P = v.points.copy()
             if depth_at is not None and len(v):
                 free = ~v.has_depth
@@ -98,9 +96,9 @@ class KeypointTracker:
             out.append(X)
         return out
 
-    def observations(self, views: list[ViewKeypoints], keyframes, poses: np.ndarray, depth_at=None, solved=None, cameras=None):
-        """2D-3D matches of ``views`` (a new frame) against ``keyframes`` (their rig poses
-        ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame (of
+    def observations(self, views: list[ViewKeypoints], known: dict, keyframes, poses: np.ndarray, depth_at=None, solved=None, cameras=None):
+        """2D-3D matches of ``views`` (a new frame) against ``keyframes`` (their keypoints
+        ``known[k]``, their rig poses ``poses`` [K,4,4] indexed by keyframe), one set per camera of the new frame (of
         ``cameras``, default all), and per set the matched keypoints ``(keyframe, camera, index
         there, index here)`` [M,4]."""
         obs, pairs, pts_of = [], [], {}  # pts_of: keyframe -> its world points per camera (once per call)
@@ -109,13 +107,13 @@ class KeypointTracker:
                 continue
             b, X, who = [], [], []
             for k in keyframes:
-                if k not in self.views:
+                if k not in known:
                     continue
                 if k not in pts_of:
-                    pts_of[k] = self.points_w(k, poses[k], depth_at, solved)
+                    pts_of[k] = self.points_w(k, known[k], poses[k], depth_at, solved)
                 pts = pts_of[k]
                 for d in self.partners[c]:
-                    kv = self.views[k][d]
+                    kv = known[k][d]
                     ok = np.isfinite(pts[d][:, 0])
                     if ok.sum() < 3 or len(v) < 3:
                         continue
@@ -129,16 +127,16 @@ class KeypointTracker:
                 pairs.append(np.concatenate(who))
         return obs, pairs
 
-    def localize(self, views, keyframes, poses, depth_at=None, guess=None, solved=None) -> PnPResult | None:
+    def localize(self, views, known: dict, keyframes, poses, depth_at=None, guess=None, solved=None) -> PnPResult | None:
         """The rig pose of a frame with keypoints ``views`` from matches against
-        ``keyframes``; None when no pose has enough support (``min_inliers`` and
+        ``keyframes`` (their keypoints ``known[k]``); None when no pose has enough support (``min_inliers`` and
         ``min_inlier_ratio``). The keypoints of the :attr:`observers` measure the pose; where
         they find none, those of every camera. ``guess`` (constant velocity) competes as a hypothesis;
         ``depth_at`` and ``solved`` give keypoints their 3D points (:meth:`points_w`). The
         result's ``matches`` [M,5] are its inlier matches ``(keyframe, camera there, index
         there, camera here, index here)`` (:class:`~mcgs_warp.ba.keypoint_tracks.KeypointTracks` links them)."""
         for cameras in [self.observers, None] if len(self.observers) < len(views) else [None]:
-            obs, pairs = self.observations(views, keyframes, poses, depth_at, solved, cameras)
+            obs, pairs = self.observations(views, known, keyframes, poses, depth_at, solved, cameras)
             res = self.pnp.solve(obs, guess=guess, min_inliers=self.cfg.min_inliers)
             if res is not None and res.inlier_ratio >= self.cfg.min_inlier_ratio:
                 break

@@ -81,7 +81,8 @@ class Tracker:
             raise InputError(None, "tracking.correspondences", "none leaves only the keypoint tracks: it needs tracking.keypoints true and tracking.keypoint_weight above 0")
         self.stereo_matches = StereoMatches(self.stereo)
         self.keypoints = KeypointTracker(sequence.rig, rig_overlap, self.stereo.pairs, tc.keypoint_matching, seed=config.seed) if tc.keypoints else None
-        self.odometry = KeypointOdometry(sequence.rig, rig_overlap, self.stereo.pairs, tc.odometry, tc.keypoint_matching, seed=config.seed) if tc.keypoints else None  # every frame's motion
+        self.odometry = KeypointOdometry(sequence.rig, config=tc.odometry, tracker=self.keypoints) if tc.keypoints else None  # every frame's motion, the same keypoint tracker
+        self.keyframe_views: dict = {}  # keyframe -> its keypoints per camera (the odometry keeps its recent frames')
         self.tracks = KeypointTracks(tc.keypoint_weight) if tc.keypoints and tc.keypoint_weight > 0 else None  # keypoint tracks in MCBA
         self.mcba = MCBA(self.buf, MCBAConfig(iterations=tc.mcba_iterations, huber_delta=tc.huber_px, lm_lambda=tc.lm_lambda, prior_weight=tc.prior_weight if self.prior.metric else 0.0, variance_components=tc.variance_components))
         self.graph = FactorGraph(self.buf, self.overlap, replace(tc.graph, max_per_view=2 * tc.temporal_radius))  # edges and their correspondences
@@ -227,7 +228,7 @@ class Tracker:
         """The keypoint tracks of ``keyframes`` as an MCBA problem (None without tracks)."""
         if self.tracks is None:
             return None, []
-        return self.tracks.problem(list(keyframes), lambda k: self.keypoints.views[k], poses, self.factors.T_b_c, self.depth_targets.solved_at)
+        return self.tracks.problem(list(keyframes), lambda k: self.keyframe_views[k], poses, self.factors.T_b_c, self.depth_targets.solved_at)
 
     def take_update(self) -> list:
         """The pose and depth changes since the last call, in order (:class:`PosesMoved`,
@@ -271,7 +272,7 @@ class Tracker:
             views = odo.views[frame.index] if odo is not None and frame.index in odo.views else self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
             if len(buf):
                 recent = [j for j in range(len(buf)) if j not in self.lost][-self.keypoints.cfg.keyframes :]  # a lost keyframe's pose is only a prediction
-                self._anchor = self.keypoints.localize(views, recent, poses, self.depth_targets.solved_at, guess=T_init, solved=self._solved_points)
+                self._anchor = self.keypoints.localize(views, self.keyframe_views, recent, poses, self.depth_targets.solved_at, guess=T_init, solved=self._solved_points)
                 if self._anchor is not None:
                     T_init = self._anchor.T_w_b
         depths, confs = self.prior.with_confidence(frame, self.seq.rig)
@@ -287,7 +288,7 @@ class Tracker:
         disp = np.where(prior > 0, 1.0 / np.maximum(prior, 1e-6), 1.0 / fill).astype(np.float32)
         k = buf.add(frame.index, frame.timestamp, frame.images, T_init, disp, depth_prior=prior if self.prior.metric else None, prior_conf=conf)
         if views is not None:
-            self.keypoints.keep(k, views)
+            self.keyframe_views[k] = views
             if self.tracks is not None:
                 self.tracks.add_views(k, views)
                 if self._anchor is not None:
@@ -338,9 +339,9 @@ class Tracker:
         odo = self.odometry
         by_odometry = k > 0 and odo is not None and odo.span_tracked(int(buf.frame_index[k - 1]), int(frame))
         start, how = T_init, "the keypoint pose" if self._anchor is not None else "the keypoint odometry's pose" if by_odometry else "the constant-velocity prediction"
-        if self.keypoints is not None and k in self.keypoints.views:
+        if self.keypoints is not None and k in self.keyframe_views:
             others = [j for j in range(len(buf)) if j != k and j not in self.lost]
-            reloc = self.keypoints.localize(self.keypoints.views[k], others, buf.get_poses(), self.depth_targets.solved_at, solved=self._solved_points)
+            reloc = self.keypoints.localize(self.keyframe_views[k], self.keyframe_views, others, buf.get_poses(), self.depth_targets.solved_at, solved=self._solved_points)
             if reloc is not None:
                 start, how = reloc.T_w_b, f"relocalized by keypoints ({reloc.n_inliers} inliers)"
                 self._anchor = reloc

@@ -43,7 +43,7 @@ def load_state_arrays(tracker, a: dict, store, source) -> None:
     if tracker.keypoints is not None:
         for k, i in enumerate(tracker.buf.frame_index):
             views = detect(int(i))
-            tracker.keypoints.keep(k, views)
+            tracker.keyframe_views[k] = views
             if tracker.tracks is not None:
                 tracker.tracks.add_views(k, views)
     try:

@@ -169,10 +169,10 @@ def test_every_camera_joins_where_the_observers_find_no_pose(monkeypatch):
     cam = [dict(name=n, model="pinhole", resolution=[320, 240], intrinsics=[180.0, 180.0, 159.5, 119.5], T_b_c=dict(translation=[0.0, y, 0.0], quaternion=[-0.5, 0.5, -0.5, 0.5])) for n, y in (("left", 0.0), ("right", -0.54))]
     kt = KeypointTracker(rig_from_dict({"cameras": cam}), np.full((2, 2), 0.9), [(0, 1), (1, 0)])
     asked, found = [], SimpleNamespace(inlier_ratio=1.0, inliers=[])
-    monkeypatch.setattr(kt, "observations", lambda views, keyframes, poses, depth_at=None, solved=None, cameras=None: (asked.append(cameras), ([], []))[1])
+    monkeypatch.setattr(kt, "observations", lambda views, known, keyframes, poses, depth_at=None, solved=None, cameras=None: (asked.append(cameras), ([], []))[1])
     for first, expected in ((None, [[0], None]), (found, [[0]])):
         asked.clear()
         answers = iter([first, found])
         monkeypatch.setattr(kt.pnp, "solve", lambda obs, guess=None, min_inliers=20: next(answers))
-        assert kt.localize([None, None], [0], {}) is found
+        assert kt.localize([None, None], {}, [0], {}) is found
         assert asked == expected

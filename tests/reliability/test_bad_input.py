@@ -207,7 +207,7 @@ def test_every_stage_section_reaches_its_stage(tmp_path):
     seq = open_sequence(small_sequence(tmp_path / "seq"))
     tracker = Tracker(seq, cfg, KeyframeBuffer(seq.rig, stride=cfg.tracking.stride))
     assert tracker.stereo.cfg.planes == 64 and tracker.stereo.cfg.radius == 2
-    assert tracker.keypoints.cfg.features == 500 and tracker.odometry.tracker.cfg.features == 500
+    assert tracker.keypoints.cfg.features == 500 and tracker.odometry.tracker is tracker.keypoints
     assert tracker.odometry.cfg.window == 7
     assert tracker.flow.settings == ("medium", 0, 6, 5.0) and tracker.flow.sigma == 2.0  # no exact depth here: the flow settings, not the preset
     assert tracker.graph.cfg.min_overlap == 0.2 and tracker.graph.cfg.max_per_view == 6
