@@ -167,7 +167,7 @@ def test_window_keeps_a_two_view_step_against_few_wrong_links():
                 v.points[:30] = (X_w[idx] @ T_c_w[:3, :3].T + T_c_w[:3, 3]) * rng.normal(1, 0.01, (len(idx), 1))
             odo.frames.append(f)
             odo.poses[f], odo.tracked[f] = T.copy(), True
-            odo.tracker.keep(f, views)
+            odo.views[f] = views
             odo.tracks.add_views(f, views)
             if f == 1:
                 odo.tracks.link(1, matches(views, odo.views[0], 0))
