@@ -269,7 +269,7 @@ class Tracker:
             T_init = given
         views, self._anchor = None, None
         if self.keypoints is not None:
-            views = odo.views[frame.index] if odo is not None and frame.index in odo.views else self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
+            views = odo.views[frame.index] if frame.index in odo.views else self.keypoints.detect(frame.images, frame.depths if self.exact_depth else None)
             if len(buf):
                 recent = [j for j in range(len(buf)) if j not in self.lost][-self.keypoints.cfg.keyframes :]  # a lost keyframe's pose is only a prediction
                 self._anchor = self.keypoints.localize(views, self.keyframe_views, recent, poses, self.depth_targets.solved_at, guess=T_init, solved=self._solved_points)
